@@ -1,0 +1,114 @@
+"""Reduced Lagrangian dynamics M̃ q̃̈ + c̃ + g̃ = 0 pulled back through φ (DESIGN.md §3, eqs. 8–11).
+
+Every term is a quadrature sum over fixed points X_j with weights w_j; φ, J = ∂φ/∂q̃ and H = ∂²φ/∂q̃²
+(and ∇_X φ with its q̃-derivative when the potential depends on the field gradient) come from one
+batched forward-mode pass of the SIREN. Shapes: q̃, q̃̇ (B, d).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable, Optional
+
+import torch
+from torch import Tensor
+
+from lnf.quadrature import Quadrature
+from lnf.scenes.base import Scene
+from lnf.siren import FieldJet
+
+# φ evaluated at (codes, points) with its derivatives: anything with the signature of ModulatedSiren.jet
+JetFn = Callable[..., FieldJet]
+
+
+@dataclass
+class DynamicsTerms:
+    """M̃ (B, d, d), c̃ (B, d), g̃ (B, d), Ṽ (B,), and ∂T̃/∂q̃ (B, d) at the evaluated state."""
+
+    mass: Tensor
+    coriolis: Tensor
+    gravity: Tensor
+    potential: Tensor
+    kinetic_gradient: Tensor
+
+
+class ReducedDynamics:
+    """The pulled-back mechanical system of a field φ and a scene's Lagrangian on a quadrature rule.
+
+    Args:
+        jet: φ's jet function, e.g. ``ModulatedSiren.jet`` or ``LinearEmbedding.jet``.
+        scene: gives ω0 and V.
+        quadrature: points and weights of the integrals.
+        forcing: optional generalized force τ(t, q̃, q̃̇, jet) → (B, d) added to the right-hand side.
+    """
+
+    def __init__(self, jet: JetFn, scene: Scene, quadrature: Quadrature,
+                 forcing: Optional[Callable[..., Tensor]] = None) -> None:
+        self.jet = jet
+        self.scene = scene
+        self.quadrature = quadrature
+        self.points = quadrature.points
+        self.density_weights = quadrature.weights * scene.density(quadrature.points)  # w_j ω0_j (N,)
+        self.potential_fn = scene.potential(quadrature)
+        self.forcing = forcing
+
+    def terms(self, q: Tensor, v: Tensor) -> DynamicsTerms:
+        spatial = self.potential_fn.needs_gradient
+        jet = self.jet(q, self.points, order=2, spatial=spatial)
+        J, H, ww = jet.J, jet.H, self.density_weights.to(q)
+        Jv = torch.einsum("bnai,bi->bna", J, v)
+        Hv = torch.einsum("bnaij,bj->bnai", H, v)  # (B, N, A, d)
+        mass = torch.einsum("n,bnai,bnaj->bij", ww, J, J)
+        coriolis = torch.einsum("n,bnai,bnaj,bj->bi", ww, J, Hv, v)  # Σ w ω0 J_iᵀ H[v, v]
+        kinetic_gradient = torch.einsum("n,bna,bnak->bk", ww, Jv, Hv)  # ∂/∂q̃ ½ q̃̇ᵀ M̃ q̃̇
+        dVdq, dVdG = self.potential_fn.gradient(jet.value, jet.G)
+        gravity = torch.einsum("bna,bnai->bi", dVdq, J)
+        if dVdG is not None:
+            gravity = gravity + torch.einsum("bnak,bnaki->bi", dVdG, jet.GJ)
+        potential = self.potential_fn(jet.value, jet.G)
+        return DynamicsTerms(mass, coriolis, gravity, potential, kinetic_gradient)
+
+    def acceleration(self, q: Tensor, v: Tensor, t: float = 0.0) -> Tensor:
+        """q̃̈ = M̃⁻¹ (−c̃ − g̃ + τ) (B, d)."""
+        terms = self.terms(q, v)
+        rhs = -terms.coriolis - terms.gravity
+        if self.forcing is not None:
+            rhs = rhs + self.forcing(t, q, v)
+        return torch.linalg.solve(terms.mass, rhs)
+
+    def hamiltonian_derivatives(self, q: Tensor, p: Tensor, t: float = 0.0) -> tuple[Tensor, Tensor]:
+        """(∂H/∂p̃ = q̃̇, −∂H/∂q̃ + τ) at (q̃, p̃) for H = ½ p̃ᵀM̃⁻¹p̃ + Ṽ, from one jet evaluation."""
+        spatial = self.potential_fn.needs_gradient
+        jet = self.jet(q, self.points, order=2, spatial=spatial)
+        J, H, ww = jet.J, jet.H, self.density_weights.to(q)
+        mass = torch.einsum("n,bnai,bnaj->bij", ww, J, J)
+        v = torch.linalg.solve(mass, p)
+        Jv = torch.einsum("bnai,bi->bna", J, v)
+        Hv = torch.einsum("bnaij,bj->bnai", H, v)
+        kinetic_gradient = torch.einsum("n,bna,bnak->bk", ww, Jv, Hv)
+        dVdq, dVdG = self.potential_fn.gradient(jet.value, jet.G)
+        gravity = torch.einsum("bna,bnai->bi", dVdq, J)
+        if dVdG is not None:
+            gravity = gravity + torch.einsum("bnak,bnaki->bi", dVdG, jet.GJ)
+        force = kinetic_gradient - gravity
+        if self.forcing is not None:
+            force = force + self.forcing(t, q, v)
+        return v, force
+
+    def mass_matrix(self, q: Tensor) -> Tensor:
+        J = self.jet(q, self.points, order=1).J
+        return torch.einsum("n,bnai,bnaj->bij", self.density_weights.to(q), J, J)
+
+    def potential_energy(self, q: Tensor) -> Tensor:
+        jet = self.jet(q, self.points, order=0, spatial=self.potential_fn.needs_gradient)
+        return self.potential_fn(jet.value, jet.G)
+
+    def energies(self, q: Tensor, v: Tensor) -> tuple[Tensor, Tensor]:
+        """(T̃, Ṽ), each (...,) for q̃, q̃̇ (..., d)."""
+        shape = q.shape[:-1]
+        q2, v2 = q.reshape(-1, q.shape[-1]), v.reshape(-1, v.shape[-1])
+        spatial = self.potential_fn.needs_gradient
+        jet = self.jet(q2, self.points, order=1, spatial=spatial)
+        Jv = torch.einsum("bnai,bi->bna", jet.J, v2)
+        kinetic = 0.5 * torch.einsum("n,bna,bna->b", self.density_weights.to(q), Jv, Jv)
+        potential = self.potential_fn(jet.value, jet.G)
+        return kinetic.reshape(shape), potential.reshape(shape)

@@ -1,0 +1,105 @@
+"""Evaluation entry point: ``python -m lnf.evaluate ckpt_path=... [integrator=rk4 dt=... horizon=... grid.kind=...]``.
+
+Loads a checkpoint without training, rolls out the test trajectories with any integrator, time step,
+horizon, quadrature and evaluation grid, writes metrics.json and Figure 3 into the Hydra output dir.
+"""
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+from typing import Any, Optional
+
+import hydra
+import numpy as np
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+from lnf.dataset import DatasetConfig, ensure_dataset, load_split
+from lnf.evaluation import evaluate_rollouts, long_horizon_energy
+from lnf.model import build, load
+from lnf.quadrature import midpoint_grid
+from lnf.training.callbacks import save_evaluation_figures, write_json_atomic
+from lnf.utils import print_summary, run_metadata
+
+log = logging.getLogger("lnf.evaluate")
+
+
+def evaluation_points(grid: DictConfig, bounds: list[list[float]], stored: np.ndarray) -> tuple[np.ndarray, Optional[tuple]]:
+    """Points (N, dim_B) of the evaluation grid and its shape (None for scattered points)."""
+    kind = grid.get("kind", "stored")
+    dim = len(bounds)
+    if kind == "stored":
+        res = int(round(len(stored) ** (1 / dim)))
+        return stored, (res,) * dim
+    if kind == "uniform":
+        res = int(grid.resolution)
+        if res < 1:
+            raise ValueError(f"grid.resolution must be ≥ 1 (points per axis), got {res}: the grid has no points")
+        return midpoint_grid(res, bounds).numpy(), (res,) * dim
+    if kind == "random":
+        n = int(grid.n_points)
+        if n < 1:
+            raise ValueError(f"grid.n_points must be ≥ 1, got {n}: the evaluation grid has no points")
+        rng = np.random.default_rng(int(grid.get("seed", 0)))
+        b = np.asarray(bounds)
+        return (b[:, 0] + (b[:, 1] - b[:, 0]) * rng.random((n, dim))).astype(np.float32), None
+    raise ValueError(f"grid.kind must be 'stored', 'uniform' or 'random', got {kind!r}")
+
+
+def evaluate(cfg: DictConfig) -> dict[str, float]:
+    """Evaluate `cfg.ckpt_path`; returns the metrics (also written to metrics.json)."""
+    if cfg.get("threads"):
+        torch.set_num_threads(int(cfg.threads))
+    output_dir = Path(cfg.paths.output_dir)
+    model = load(cfg.ckpt_path)
+    scene = model.scene
+    data = dict(model.checkpoint.get("data") or {})
+    if not data:
+        raise ValueError(f"checkpoint {cfg.ckpt_path} records no data settings; cannot find its test trajectories")
+    path = Path(data.pop("path"))
+    on_mismatch = data.pop("on_mismatch", "regenerate")
+    dcfg = DatasetConfig.from_mapping(data)
+    ensure_dataset(scene, dcfg, path, on_mismatch=on_mismatch)
+    split = load_split(path, cfg.split, scene=scene, cfg=dcfg)
+
+    n = len(split) if cfg.max_trajectories is None else min(int(cfg.max_trajectories), len(split))
+    dt = float(cfg.dt) if cfg.dt is not None else float(split.times[1] - split.times[0])
+    horizon = float(cfg.horizon) if cfg.horizon is not None else float(split.times[-1] + split.times[1] - split.times[0])
+    if dt <= 0 or horizon <= dt:
+        raise ValueError(f"need dt > 0 and horizon > dt, got dt={dt}, horizon={horizon}")
+    train_horizon = float(cfg.train_horizon) if cfg.train_horizon is not None else float(split.times[split.train_times])
+    times = dt * np.arange(int(round(horizon / dt)))
+    stored_times = len(times) == len(split.times) and np.allclose(times, split.times)
+    states = split.states[:n] if stored_times else scene.simulate(split.states[:n, 0], times)
+    points, grid_shape = evaluation_points(cfg.grid, scene.bounds, split.fine_points)
+    use_stored = stored_times and cfg.grid.kind == "stored"
+    quadrature = build(OmegaConf.to_container(cfg.quadrature, resolve=True)) if cfg.get("quadrature") else None
+    integrator = OmegaConf.to_container(cfg.integrator, resolve=True)
+
+    start = time.perf_counter()
+    result = evaluate_rollouts(model, states, times, points, train_horizon,
+                               true_fields=split.fields[:n] if use_stored else None,
+                               true_velocities=split.velocities[:n] if use_stored else None,
+                               integrator=integrator, quadrature=quadrature)
+    metrics = dict(result.metrics)
+    if int(cfg.long_steps) > 0:
+        metrics.update(long_horizon_energy(model, states[: int(cfg.long_trajectories), 0], points, dt,
+                                           int(cfg.long_steps), integrator=integrator, quadrature=quadrature))
+    metrics["evaluation_seconds"] = time.perf_counter() - start
+    write_json_atomic(output_dir / "metrics.json", metrics)
+    write_json_atomic(output_dir / "run.json", run_metadata(cfg))
+    if grid_shape is not None and int(cfg.figures) > 0:
+        save_evaluation_figures(result, scene, grid_shape, train_horizon, output_dir / "figures", cfg.split,
+                                int(cfg.figures))
+    print_summary(metrics, title=f"{cfg.split} metrics of {cfg.ckpt_path}")
+    return metrics
+
+
+@hydra.main(version_base="1.3", config_path="../conf", config_name="evaluate")
+def main(cfg: DictConfig) -> None:
+    evaluate(cfg)
+
+
+if __name__ == "__main__":
+    main()

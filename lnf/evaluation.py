@@ -1,0 +1,149 @@
+"""Reduced rollouts on held-out trajectories and their metrics (shared by the callback and `lnf.evaluate`).
+
+Protocol (DESIGN.md §3, §6): q̃0 = ρ̃(q(t0)) and q̃̇0 = (dφ)^{†,ω0} q̇(t0) from the fields on the evaluation
+points; roll the reduced dynamics out over all samples; decode on the evaluation points; compare with
+the true fields, with the projected reference q̃_ref(t) = ρ̃(q(t)) and with the true energies.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Optional
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from lnf import metrics as M
+from lnf.integrators import Integrator, get_integrator
+from lnf.model import LagrangianNeuralField
+from lnf.quadrature import Quadrature, QuadratureRule
+
+
+@dataclass
+class RolloutEvaluation:
+    """Metrics plus the arrays behind them (n trajectories, T samples, N evaluation points)."""
+
+    metrics: dict[str, float]
+    times: np.ndarray  # (T,)
+    q_pred: np.ndarray  # (n, T, d)
+    q_ref: np.ndarray  # (n, T, d)
+    pred_fields: np.ndarray  # (n, T, N, A)
+    true_fields: np.ndarray  # (n, T, N, A)
+    energies: dict[str, np.ndarray] = field(default_factory=dict)  # each (n, T)
+    points: Optional[np.ndarray] = None  # (N, dim_B)
+
+
+def _chunked(fn, x: Tensor, chunk: int) -> Tensor:
+    return torch.cat([fn(x[i:i + chunk]) for i in range(0, x.shape[0], chunk)], dim=0)
+
+
+@torch.no_grad()
+def evaluate_rollouts(
+    model: LagrangianNeuralField,
+    states: np.ndarray,
+    times: np.ndarray,
+    points: np.ndarray,
+    train_horizon: float,
+    true_fields: Optional[np.ndarray] = None,
+    true_velocities: Optional[np.ndarray] = None,
+    integrator: "str | Integrator | dict" = "implicit_midpoint",
+    quadrature: "Quadrature | QuadratureRule | None" = None,
+    snapshot_chunk: int = 32,
+) -> RolloutEvaluation:
+    """Roll out every trajectory of full-order `states` (n, T, S) sampled at `times` (T,) [s].
+
+    `points` (N, dim_B) are the evaluation points (equal quadrature weights |B|/N); the true fields there
+    come from `true_fields`/`true_velocities` (n, T, N, A) when given, else from the scene.
+    """
+    if points.ndim != 2 or points.shape[0] == 0:
+        raise ValueError(f"evaluation grid has no points: expected shape (N ≥ 1, dim_B), got {points.shape}")
+    scene = model.scene
+    p = next(model.parameters())
+    if true_fields is None or true_velocities is None:
+        true_fields, true_velocities = scene.fields(states, points)
+    n, T = states.shape[:2]
+    dt = float(times[1] - times[0])
+    pts = torch.as_tensor(points, dtype=p.dtype, device=p.device)
+    fields_t = torch.as_tensor(true_fields, dtype=p.dtype, device=p.device)
+    vel0 = torch.as_tensor(true_velocities[:, 0], dtype=p.dtype, device=p.device)
+
+    q0 = model.reduce(pts, fields_t[:, 0])
+    v0 = model.project_velocity(q0, pts, vel0)
+    integ = get_integrator(integrator)
+    start = time.perf_counter()
+    traj = model.rollout(q0, v0, dt=dt, steps=T - 1, integrator=integ, quadrature=quadrature, on_divergence="mark")
+    rollout_seconds = time.perf_counter() - start
+
+    d = model.latent_dim
+    flat_q = traj.q.reshape(n * T, d)
+    finite = torch.isfinite(flat_q).all(-1)
+    safe_q = torch.where(finite[:, None], flat_q, torch.zeros_like(flat_q))
+    pred = _chunked(lambda c: model.decode(c, pts), safe_q, snapshot_chunk)
+    pred = torch.where(finite[:, None, None], pred, float("nan")).reshape(n, T, *pred.shape[1:])
+    flat_fields = fields_t.reshape(n * T, *fields_t.shape[2:])
+    q_ref = _chunked(lambda f: model.reduce(pts, f), flat_fields, snapshot_chunk)
+    proj = _chunked(lambda c: model.decode(c, pts), q_ref, snapshot_chunk).reshape(n, T, *pred.shape[2:])
+
+    kin, pot = model.energy(torch.where(finite[:, None], flat_q, 0.0),
+                            torch.where(finite[:, None], traj.v.reshape(n * T, d), 0.0), quadrature)
+    kin = torch.where(finite, kin, float("nan")).reshape(n, T).double().cpu().numpy()
+    pot = torch.where(finite, pot, float("nan")).reshape(n, T).double().cpu().numpy()
+    kin_true, pot_true = scene.true_energy_parts(states)
+
+    weights = np.full(points.shape[0], 1.0 / points.shape[0])
+    pred_np = pred.double().cpu().numpy()
+    true_np = np.asarray(true_fields, dtype=np.float64)
+    metrics: dict[str, float] = {}
+    metrics.update(M.field_metrics("field_rel_l2", pred_np, true_np, weights, times, train_horizon))
+    metrics.update(M.field_metrics("projection_rel_l2", proj.double().cpu().numpy(), true_np, weights, times,
+                                   train_horizon))
+    q_pred_np = traj.q.double().cpu().numpy()
+    q_ref_np = q_ref.reshape(n, T, d).double().cpu().numpy()
+    metrics.update(M.latent_rmse(q_pred_np, q_ref_np))
+    metrics.update(M.energy_metrics(kin + pot, kin_true + pot_true, scene.energy_scale))
+    vpt = M.valid_prediction_time(pred_np, true_np, weights, times)
+    metrics.update({f"vpt/{k}": v for k, v in M.summarize(vpt).items()})
+    metrics["vpt/median"] = float(np.median(vpt))
+    metrics["vpt/min"] = float(np.min(vpt))
+    metrics.pop("vpt/max", None)
+    metrics["diverged_fraction"] = float(traj.diverged.float().mean())
+    metrics["rollout_seconds_per_trajectory"] = rollout_seconds / n
+    metrics["rollout_seconds_per_step"] = rollout_seconds / max(T - 1, 1)
+    return RolloutEvaluation(
+        metrics=metrics, times=np.asarray(times), q_pred=q_pred_np, q_ref=q_ref_np, pred_fields=pred_np,
+        true_fields=true_np, points=np.asarray(points),
+        energies={"kinetic_pred": kin, "potential_pred": pot, "kinetic_true": kin_true, "potential_true": pot_true},
+    )
+
+
+@torch.no_grad()
+def long_horizon_energy(
+    model: LagrangianNeuralField,
+    states0: np.ndarray,
+    points: np.ndarray,
+    dt: float,
+    steps: int,
+    integrator: "str | Integrator | dict" = "implicit_midpoint",
+    quadrature: "Quadrature | QuadratureRule | None" = None,
+    record_every: int = 10,
+) -> dict[str, float]:
+    """energy_drift = max_t |Ẽ(t) − Ẽ(0)| / E_scale over a `steps`-step rollout from full-order states (n, S)."""
+    scene = model.scene
+    p = next(model.parameters())
+    q_true, v_true = scene.fields(states0[:, None], points)
+    pts = torch.as_tensor(points, dtype=p.dtype, device=p.device)
+    q0 = model.reduce(pts, torch.as_tensor(q_true[:, 0], dtype=p.dtype, device=p.device))
+    v0 = model.project_velocity(q0, pts, torch.as_tensor(v_true[:, 0], dtype=p.dtype, device=p.device))
+    start = time.perf_counter()
+    traj = model.rollout(q0, v0, dt=dt, steps=steps, integrator=integrator, quadrature=quadrature,
+                         record_every=record_every, on_divergence="mark")
+    seconds = time.perf_counter() - start
+    kin, pot = model.energy(torch.nan_to_num(traj.q), torch.nan_to_num(traj.v), quadrature)
+    energy = (kin + pot).double().cpu().numpy()
+    energy[traj.diverged.cpu().numpy()] = np.nan
+    drift = np.max(np.abs(energy - energy[:, :1]), axis=-1) / scene.energy_scale
+    out = {f"energy_drift_long/{k}": v for k, v in M.summarize(drift).items()}
+    out["energy_drift_long/steps"] = float(steps)
+    out["energy_drift_long/seconds"] = seconds
+    return out

@@ -1,0 +1,139 @@
+"""Time integration of reduced dynamics: common interface, trajectory container, divergence handling."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Optional, Protocol
+
+import torch
+from torch import Tensor
+
+
+class Dynamics(Protocol):
+    def acceleration(self, q: Tensor, v: Tensor, t: float = 0.0) -> Tensor: ...
+
+
+class RolloutDivergedError(RuntimeError):
+    """A rollout produced non-finite or exploding states; says where."""
+
+    def __init__(self, step: int, time: float, trajectories: list[int], integrator: str, dt: float) -> None:
+        self.step, self.time, self.trajectories = step, time, trajectories
+        super().__init__(
+            f"rollout diverged with {integrator} (dt={dt:g}) at step {step}, t={time:.6g}, "
+            f"trajectories {trajectories[:10]}{' …' if len(trajectories) > 10 else ''}: state became non-finite "
+            "or exceeded the bound. Try a smaller dt (or integrator.substeps), another integrator, or check the model."
+        )
+
+
+@dataclass
+class Trajectory:
+    """Recorded states: times (T,), q and v (B, T, d); diverged_step (B,) is −1 where the run stayed finite.
+
+    Trajectories that diverged (only kept with ``on_divergence='mark'``) hold NaN from that step on.
+    """
+
+    times: Tensor
+    q: Tensor
+    v: Tensor
+    diverged_step: Tensor
+    steps: int = 0
+    dt: float = 0.0
+    extra: dict = field(default_factory=dict)
+
+    @property
+    def diverged(self) -> Tensor:
+        return self.diverged_step >= 0
+
+
+class Integrator:
+    """Base class. `integrate` rolls out `steps` steps of size `dt`, recording every `record_every`.
+
+    Args:
+        substeps: each step of size dt is taken as `substeps` steps of size dt/substeps.
+        max_abs: a state with |q̃| or |q̃̇| above this counts as diverged.
+    """
+
+    name = "integrator"
+
+    def __init__(self, substeps: int = 1, max_abs: float = 1e6) -> None:
+        if int(substeps) != substeps or substeps < 1:
+            raise ValueError(f"integrator.substeps must be an integer ≥ 1, got {substeps!r}")
+        self.substeps = int(substeps)
+        self.max_abs = float(max_abs)
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}(substeps={self.substeps})"
+
+    def integrate(self, dynamics: Dynamics, q0: Tensor, v0: Tensor, dt: float, steps: int,
+                  record_every: int = 1, t0: float = 0.0, on_divergence: str = "raise") -> Trajectory:
+        raise NotImplementedError
+
+    # -- shared helpers ---------------------------------------------------------------------------
+    @staticmethod
+    def _check_args(q0: Tensor, v0: Tensor, dt: float, steps: int, record_every: int, on_divergence: str) -> None:
+        if q0.ndim != 2 or q0.shape != v0.shape:
+            raise ValueError(f"q0 and v0 must both have shape (B, d), got {tuple(q0.shape)} and {tuple(v0.shape)}")
+        if not (dt > 0 and torch.isfinite(torch.tensor(float(dt)))):
+            raise ValueError(f"dt must be a positive finite number, got {dt!r}")
+        if int(steps) != steps or steps < 0:
+            raise ValueError(f"steps must be an integer ≥ 0, got {steps!r}")
+        if int(record_every) != record_every or record_every < 1:
+            raise ValueError(f"record_every must be an integer ≥ 1, got {record_every!r}")
+        if on_divergence not in ("raise", "mark"):
+            raise ValueError(f"on_divergence must be 'raise' or 'mark', got {on_divergence!r}")
+
+    def _bad(self, *xs: Tensor) -> Tensor:
+        """(B,) mask of trajectories whose state is non-finite or beyond max_abs."""
+        bad = torch.zeros(xs[0].shape[0], dtype=torch.bool, device=xs[0].device)
+        for x in xs:
+            bad |= ~torch.isfinite(x).all(-1) | (x.abs() > self.max_abs).any(-1)
+        return bad
+
+
+class FixedStepIntegrator(Integrator):
+    """One-step method on (q̃, q̃̇) (or on an internal state, see `_to_internal`)."""
+
+    def step(self, dynamics: Dynamics, state: tuple[Tensor, ...], h: float, t: float) -> tuple[Tensor, ...]:
+        raise NotImplementedError
+
+    def _to_internal(self, dynamics: Dynamics, q: Tensor, v: Tensor) -> tuple[Tensor, ...]:
+        return (q, v)
+
+    def _to_qv(self, dynamics: Dynamics, state: tuple[Tensor, ...]) -> tuple[Tensor, Tensor]:
+        return state[0], state[1]
+
+    @torch.no_grad()
+    def integrate(self, dynamics: Dynamics, q0: Tensor, v0: Tensor, dt: float, steps: int,
+                  record_every: int = 1, t0: float = 0.0, on_divergence: str = "raise") -> Trajectory:
+        self._check_args(q0, v0, dt, steps, record_every, on_divergence)
+        B = q0.shape[0]
+        h = dt / self.substeps
+        n_rec = steps // record_every + 1
+        qs = q0.new_full((B, n_rec, q0.shape[1]), float("nan"))
+        vs = torch.full_like(qs, float("nan"))
+        qs[:, 0], vs[:, 0] = q0, v0
+        diverged = torch.full((B,), -1, dtype=torch.long, device=q0.device)
+        alive = torch.ones(B, dtype=torch.bool, device=q0.device)
+        state = self._to_internal(dynamics, q0, v0)
+        t = t0
+        for n in range(1, steps + 1):
+            for k in range(self.substeps):
+                state = self.step(dynamics, state, h, t0 + (n - 1) * dt + k * h)
+            t = t0 + n * dt
+            bad = self._bad(*state) & alive
+            if bad.any():
+                if on_divergence == "raise":
+                    raise RolloutDivergedError(n, t, bad.nonzero().flatten().tolist(), self.name, dt)
+                diverged[bad] = n
+                alive &= ~bad
+                if not alive.any():
+                    break
+                # freeze dead trajectories at a harmless state so they do not poison batched solves
+                state = tuple(torch.where(alive[:, None], s, s0) for s, s0 in
+                              zip(state, self._to_internal(dynamics, q0, v0)))
+            if n % record_every == 0:
+                q, v = self._to_qv(dynamics, state)
+                r = n // record_every
+                qs[:, r] = torch.where(alive[:, None], q, float("nan"))
+                vs[:, r] = torch.where(alive[:, None], v, float("nan"))
+        times = t0 + dt * record_every * torch.arange(n_rec, dtype=torch.float64)
+        return Trajectory(times=times, q=qs, v=vs, diverged_step=diverged, steps=steps, dt=dt)

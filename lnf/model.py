@@ -1,0 +1,217 @@
+"""LagrangianNeuralField: the embedding φ, the reduction ρ̃ and the pulled-back dynamics in one object.
+
+The Python API of lnf (no Lightning or Hydra needed)::
+
+    model = lnf.load("outputs/.../checkpoints/last.ckpt")
+    q0 = model.reduce(points, values)                  # (B, N, dim_B), (B, N, A) -> (B, d)
+    v0 = model.project_velocity(q0, points, velocities) # -> (B, d)
+    traj = model.rollout(q0, v0, dt=0.05, steps=100, integrator="implicit_midpoint")
+    fields = model.decode(traj.q[:, -1], grid)          # any points (N, dim_B) -> (B, N, A)
+    T, V = model.energy(traj.q, traj.v)
+"""
+from __future__ import annotations
+
+import importlib
+import math
+from pathlib import Path
+from typing import Any, Optional
+
+import torch
+from torch import Tensor, nn
+
+from lnf.dynamics import ReducedDynamics
+from lnf.integrators import Integrator, Trajectory, get_integrator
+from lnf.quadrature import GaussLegendre, Quadrature, QuadratureRule
+from lnf.reduction import pullback_mass_matrix, projection_loss, reconstruction_loss, reduce
+from lnf.scenes.base import Scene
+from lnf.siren import ModulatedSiren
+
+
+def build(spec: dict[str, Any]) -> Any:
+    """Instantiate ``{"_target_": "pkg.mod.Class", **kwargs}`` without Hydra (for checkpoints)."""
+    spec = dict(spec)
+    target = spec.pop("_target_", None)
+    if not target or "." not in str(target):
+        raise ValueError(f"spec needs a '_target_' of the form 'module.Class', got {target!r}")
+    module, _, name = str(target).rpartition(".")
+    try:
+        cls = getattr(importlib.import_module(module), name)
+    except (ImportError, AttributeError) as err:
+        raise ValueError(f"cannot import {target!r} named in a spec: {err}") from err
+    return cls(**spec)
+
+
+def build_model(scene: dict[str, Any], model: dict[str, Any], quadrature: dict[str, Any]) -> "LagrangianNeuralField":
+    """Model from plain specs (``{"_target_": ..., **kwargs}``): what checkpoints store."""
+    spec = dict(model)
+    spec.setdefault("_target_", "lnf.model.LagrangianNeuralField")
+    return build({**spec, "scene": build(scene), "quadrature": build(quadrature)})
+
+
+def load(path: "str | Path", map_location: "str | torch.device" = "cpu") -> "LagrangianNeuralField":
+    """Rebuild a trained model from a Lightning checkpoint in one call, without Hydra or Lightning.
+
+    The checkpoint's ``hyper_parameters`` hold the scene, model and quadrature specs; the returned model
+    is in eval mode and carries ``model.checkpoint = {"path", "data", "epoch", "global_step"}``.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"checkpoint not found: {path}")
+    try:
+        ckpt = torch.load(path, map_location=map_location, weights_only=False)
+    except Exception as err:  # noqa: BLE001 - any unpickling failure means "not a checkpoint"
+        raise ValueError(f"{path} is not a readable torch checkpoint: {err}") from err
+    hp = ckpt.get("hyper_parameters") if isinstance(ckpt, dict) else None
+    if not hp or not all(k in hp for k in ("scene", "model", "quadrature")) or "state_dict" not in ckpt:
+        raise ValueError(f"{path} is not an lnf checkpoint: expected 'hyper_parameters' with scene/model/quadrature "
+                         "and a 'state_dict' (as written by python -m lnf.train)")
+    model = build_model(hp["scene"], hp["model"], hp["quadrature"])
+    state = {k[len("model."):]: v for k, v in ckpt["state_dict"].items() if k.startswith("model.")}
+    model.load_state_dict(state)
+    model.eval()
+    model.checkpoint = {"path": str(path), "data": hp.get("data"), "epoch": ckpt.get("epoch"),
+                        "global_step": ckpt.get("global_step")}
+    return model
+
+
+def _as_field(values: Tensor) -> Tensor:
+    """Accept (B, N) for scalar fields as well as (B, N, A)."""
+    return values.unsqueeze(-1) if values.ndim == 2 else values
+
+
+class LagrangianNeuralField(nn.Module):
+    """φ (modulated SIREN), ρ̃ (K gradient steps with learned α > 0) and the scene's Lagrangian.
+
+    Args:
+        scene: the scene whose Lagrangian is pulled back (gives ω0, V, dim_A, B).
+        latent_dim: d ≥ 1.
+        width, depth, w0, hyper_width, hyper_depth, hyper_init_scale: see :class:`ModulatedSiren`.
+        reduction_steps: K ≥ 1.
+        step_size: initial α of the reduction (learned as log α).
+        quadrature: rule for the integrals of the reduced dynamics.
+    """
+
+    def __init__(
+        self,
+        scene: Scene,
+        latent_dim: int = 1,
+        width: int = 256,
+        depth: int = 2,
+        w0: float = 30.0,
+        hyper_width: int = 128,
+        hyper_depth: int = 0,
+        hyper_init_scale: float = 0.1,
+        reduction_steps: int = 3,
+        step_size: float = 0.1,
+        quadrature: Optional[QuadratureRule] = None,
+    ) -> None:
+        super().__init__()
+        if int(reduction_steps) != reduction_steps or reduction_steps < 1:
+            raise ValueError(f"model.reduction_steps (K) must be an integer ≥ 1, got {reduction_steps!r}")
+        if not step_size > 0:
+            raise ValueError(f"model.step_size (α0) must be > 0, got {step_size!r}")
+        self.scene = scene
+        self.field = ModulatedSiren(latent_dim=latent_dim, in_dim=scene.body_dim, out_dim=scene.field_dim,
+                                    width=width, depth=depth, w0=w0, hyper_width=hyper_width,
+                                    hyper_depth=hyper_depth, hyper_init_scale=hyper_init_scale)
+        self.reduction_steps = int(reduction_steps)
+        self.log_step_size = nn.Parameter(torch.tensor(math.log(step_size)))
+        self.quadrature_rule = quadrature if quadrature is not None else GaussLegendre(8)
+        self.checkpoint: dict[str, Any] = {}
+
+    @property
+    def latent_dim(self) -> int:
+        return self.field.latent_dim
+
+    @property
+    def step_size(self) -> Tensor:
+        return self.log_step_size.exp()
+
+    def _density(self, points: Tensor) -> Tensor:
+        return self.scene.density(points)
+
+    # ------------------------------------------------------------------ embedding and reduction
+    def decode(self, codes: Tensor, points: Tensor, chunk: int = 65536) -> Tensor:
+        """φ(q̃, X): codes (B, d), points (N, dim_B) or (B, N, dim_B) → (B, N, A). Chunked over points."""
+        points = points.to(codes)
+        if points.shape[-2] <= chunk:
+            return self.field(codes, points)
+        parts = [self.field(codes, points[..., i:i + chunk, :]) for i in range(0, points.shape[-2], chunk)]
+        return torch.cat(parts, dim=-2)
+
+    def reduce(self, points: Tensor, values: Tensor, steps: Optional[int] = None) -> Tensor:
+        """ρ̃(q): observed field values (B, N, A) at points (N or B, N, dim_B) → codes (B, d)."""
+        values = _as_field(values)
+        points = points.to(values)
+        self._check_observation(points, values, "values")
+        density = self._density(points)
+        return reduce(self.field, points, values, density, self.step_size, steps or self.reduction_steps)
+
+    def project_velocity(self, codes: Tensor, points: Tensor, velocities: Tensor,
+                         weights: Optional[Tensor] = None) -> Tensor:
+        """q̃̇ = (dφ)^{†,ω0} q̇: velocity field (B, N, A) at points → (B, d).
+
+        `weights` are quadrature weights of the points (N,); uniform (|B|/N) if omitted.
+        """
+        velocities = _as_field(velocities)
+        points = points.to(velocities)
+        self._check_observation(points, velocities, "velocities")
+        if weights is None:
+            weights = points.new_full(points.shape[:-1], 1.0 / points.shape[-2])
+        ww = weights.to(velocities) * self._density(points)
+        J = self.field.jet(codes, points, order=1).J
+        M = pullback_mass_matrix(J, ww)
+        rhs = torch.einsum("bn,bnai,bna->bi", ww.expand(J.shape[:2]), J, velocities)
+        return torch.linalg.solve(M, rhs)
+
+    def _check_observation(self, points: Tensor, values: Tensor, what: str) -> None:
+        if points.shape[-1] != self.scene.body_dim or points.shape[-2] == 0:
+            raise ValueError(f"points must have shape (N, {self.scene.body_dim}) with N ≥ 1, got {tuple(points.shape)}")
+        if values.ndim != 3 or values.shape[-2] != points.shape[-2] or values.shape[-1] != self.scene.field_dim:
+            raise ValueError(f"{what} must have shape (B, {points.shape[-2]}, {self.scene.field_dim}) to match "
+                             f"points {tuple(points.shape)}, got {tuple(values.shape)}")
+        if not torch.isfinite(values).all():
+            raise ValueError(f"{what} contain NaN or inf")
+
+    # ------------------------------------------------------------------ training losses (DESIGN.md §2)
+    def losses(self, points: Tensor, values: Tensor) -> dict[str, Tensor]:
+        """Reconstruction + projection loss of snapshots (B, N, A) observed at points (B, N, dim_B)."""
+        density = self._density(points)
+        K = self.reduction_steps
+        codes = reduce(self.field, points, values, density, self.step_size, K)
+        jet = self.field.jet(codes, points, order=1)
+        rec = reconstruction_loss(jet.value, values, density)
+        weights = density / points.shape[-2]  # Monte-Carlo weights of the observed points (× |B| below)
+        volume = math.prod(hi - lo for lo, hi in self.scene.bounds)
+        mass = pullback_mass_matrix(jet.J, volume * weights)
+        reprojected = reduce(self.field, points, jet.value, density, self.step_size, K)
+        proj = projection_loss(codes, reprojected, mass)
+        return {"reconstruction": rec.mean(), "projection": proj.mean(), "loss": (rec + proj).mean(),
+                "codes": codes.detach()}
+
+    # ------------------------------------------------------------------ reduced dynamics
+    def dynamics(self, quadrature: "Quadrature | QuadratureRule | None" = None) -> ReducedDynamics:
+        """The reduced Lagrangian system on `quadrature` (default: the model's rule)."""
+        rule = quadrature if quadrature is not None else self.quadrature_rule
+        quad = rule if isinstance(rule, Quadrature) else rule.build(self.scene.bounds)
+        p = next(self.parameters())
+        return ReducedDynamics(self.field.jet, self.scene, quad.to(device=p.device, dtype=p.dtype))
+
+    def rollout(self, q0: Tensor, v0: Tensor, dt: float, steps: int,
+                integrator: "str | Integrator | dict" = "implicit_midpoint", record_every: int = 1,
+                quadrature: "Quadrature | QuadratureRule | None" = None,
+                on_divergence: str = "raise") -> Trajectory:
+        """Integrate M̃q̃̈ + c̃ + g̃ = 0 from (q̃0, q̃̇0) (B, d) for `steps` steps of `dt` [s]."""
+        with torch.no_grad():
+            return get_integrator(integrator).integrate(self.dynamics(quadrature), q0, v0, dt, steps,
+                                                        record_every=record_every, on_divergence=on_divergence)
+
+    def energy(self, q: Tensor, v: Tensor, quadrature: "Quadrature | QuadratureRule | None" = None
+               ) -> tuple[Tensor, Tensor]:
+        """(T̃, Ṽ) of reduced states q̃, q̃̇ (..., d) → each (...)."""
+        with torch.no_grad():
+            return self.dynamics(quadrature).energies(q, v)
+
+    # ------------------------------------------------------------------ description
+    def extra_repr(self) -> str:
+        return f"scene={self.scene!r}, K={self.reduction_steps}, quadrature={self.quadrature_rule.describe()}"

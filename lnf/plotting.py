@@ -1,0 +1,496 @@
+"""Figures for the lifted-pendulum benchmark (the paper's Figure 3) and friends.
+
+Pure functions of numpy arrays that return :class:`matplotlib.figure.Figure` objects.
+Figures are built with ``Figure()`` directly, never through ``pyplot``: nothing needs a
+display, no global figure registry fills up, and the process-wide backend is left alone
+(PNG output goes through Agg regardless of the selected backend).
+
+Public API
+----------
+- :func:`latent_and_energy_figure` -- latent q̃(t) predicted vs projected, energies predicted
+  vs true, training horizon marked (Figure 3, top row).
+- :func:`field_snapshots_figure` -- predicted field, true field and absolute error at a few
+  times before/after the training horizon (Figure 3, bottom).
+- :func:`figure3` -- both of the above in one figure.
+- :func:`default_snapshot_indices` -- evenly spaced sample indices on each side of the horizon.
+- :func:`save_figure` -- atomic PNG write.
+
+Non-finite values in predictions (a diverged rollout) are plotted, not hidden and not fatal:
+lines get gaps, images show masked pixels in grey, colour limits use the finite values only.
+"""
+
+from __future__ import annotations
+
+import os
+import uuid
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+import matplotlib  # noqa: F401  (no backend selection needed: no pyplot is used)
+import numpy as np
+from matplotlib.figure import Figure, SubFigure
+
+__all__ = [
+    "latent_and_energy_figure",
+    "field_snapshots_figure",
+    "figure3",
+    "default_snapshot_indices",
+    "save_figure",
+    "ENERGY_KEYS",
+]
+
+ENERGY_KEYS = ("kinetic_pred", "potential_pred", "kinetic_true", "potential_true")
+
+_FIELD_CMAP = "RdBu_r"
+_ERROR_CMAP = "magma"
+_MASK_COLOR = "0.6"  # grey for NaN/inf pixels
+_HORIZON_STYLE = dict(color="0.35", linestyle=":", linewidth=1.2)
+_DPI = 120
+
+
+# --------------------------------------------------------------------------------------
+# validation helpers
+# --------------------------------------------------------------------------------------
+
+
+def _as_float_array(x, name: str) -> np.ndarray:
+    try:
+        arr = np.asarray(x, dtype=float)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{name} must be a numeric array, got {type(x).__name__}") from exc
+    return arr
+
+
+def _check_times(times, name: str = "times", increasing: bool = True) -> np.ndarray:
+    t = _as_float_array(times, name)
+    letter = "T" if name == "times" else "S"
+    if t.ndim != 1 or t.shape[0] < 1:
+        raise ValueError(f"{name} must have shape ({letter},) with {letter} >= 1, got {t.shape}")
+    if not np.all(np.isfinite(t)):
+        raise ValueError(f"{name} must be finite")
+    if increasing and t.shape[0] > 1 and not np.all(np.diff(t) > 0):
+        raise ValueError(f"{name} must be strictly increasing")
+    return t
+
+
+def _check_scalar(x, name: str) -> float:
+    try:
+        v = float(x)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{name} must be a real number, got {x!r}") from exc
+    if not np.isfinite(v):
+        raise ValueError(f"{name} must be finite, got {v}")
+    return v
+
+
+def _check_latent(q, name: str, T: int, d: int | None = None) -> np.ndarray:
+    """(T, d) array; a 1-D array of length T is accepted as d = 1."""
+    arr = _as_float_array(q, name)
+    if arr.ndim == 1 and arr.shape[0] == T:
+        arr = arr[:, None]
+    if arr.ndim != 2 or arr.shape[0] != T or arr.shape[1] < 1:
+        raise ValueError(f"{name} must have shape (T, d) with T = len(times) = {T}, got {arr.shape}")
+    if d is not None and arr.shape[1] != d:
+        raise ValueError(
+            f"{name} must have shape (T, d) = ({T}, {d}) to match q_pred, got {arr.shape}"
+        )
+    return arr
+
+
+def _check_series(x, name: str, T: int) -> np.ndarray:
+    arr = _as_float_array(x, name)
+    if arr.shape != (T,):
+        raise ValueError(f"{name} must have shape (T,) with T = len(times) = {T}, got {arr.shape}")
+    return arr
+
+
+def _check_grid_shape(grid_shape) -> tuple[int, int]:
+    try:
+        gs = tuple(int(n) for n in grid_shape)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"grid_shape must be a pair of positive ints (nx, ny), got {grid_shape!r}") from exc
+    if len(gs) != 2 or min(gs) < 1 or any(int(a) != a for a in grid_shape):
+        raise ValueError(f"grid_shape must be a pair of positive ints (nx, ny), got {grid_shape!r}")
+    return gs  # type: ignore[return-value]
+
+
+def _check_bounds(bounds) -> tuple[float, float, float, float]:
+    """Accept ((xmin, xmax), (ymin, ymax)) or (xmin, xmax, ymin, ymax); return imshow extent."""
+    arr = _as_float_array(bounds, "bounds").reshape(-1)
+    if arr.shape != (4,):
+        raise ValueError(
+            "bounds must be ((xmin, xmax), (ymin, ymax)) or (xmin, xmax, ymin, ymax), "
+            f"got {np.shape(bounds)}"
+        )
+    xmin, xmax, ymin, ymax = (float(v) for v in arr)
+    if not (np.all(np.isfinite(arr)) and xmax > xmin and ymax > ymin):
+        raise ValueError(f"bounds must be finite with xmin < xmax and ymin < ymax, got {arr.tolist()}")
+    return xmin, xmax, ymin, ymax
+
+
+def _check_fields(x, name: str, S: int, nf: int, s_label: str) -> np.ndarray:
+    arr = _as_float_array(x, name)
+    if arr.shape != (S, nf):
+        raise ValueError(
+            f"{name} must have shape ({s_label}, Nf) = ({S}, {nf}) with Nf = prod(grid_shape), got {arr.shape}"
+        )
+    return arr
+
+
+# --------------------------------------------------------------------------------------
+# small numeric helpers
+# --------------------------------------------------------------------------------------
+
+
+def _finite_absmax(*arrays: np.ndarray, default: float = 1.0) -> float:
+    m = 0.0
+    for a in arrays:
+        fin = a[np.isfinite(a)]
+        if fin.size:
+            m = max(m, float(np.max(np.abs(fin))))
+    return m if m > 0 else default
+
+
+def _value_at(times: np.ndarray, y: np.ndarray, t0: float) -> float:
+    """Linear interpolation of y(t) at t0 (NaN if a neighbouring sample is non-finite)."""
+    if times.shape[0] == 1:
+        return float(y[0])
+    j = int(np.searchsorted(times, t0))
+    j = min(max(j, 1), times.shape[0] - 1)
+    t_a, t_b = times[j - 1], times[j]
+    w = (t0 - t_a) / (t_b - t_a)
+    if w <= 0.0:
+        return float(y[j - 1])
+    if w >= 1.0:
+        return float(y[j])
+    return float((1 - w) * y[j - 1] + w * y[j])
+
+
+def _horizon_in_range(times: np.ndarray, h: float) -> bool:
+    return bool(times[0] <= h <= times[-1])
+
+
+def _format_t(t: float) -> str:
+    return f"{t:.3g}"
+
+
+# --------------------------------------------------------------------------------------
+# drawing onto a (sub)figure
+# --------------------------------------------------------------------------------------
+
+
+def _mark_horizon(ax, times: np.ndarray, curves: list[tuple[np.ndarray, str]], h: float) -> None:
+    if not _horizon_in_range(times, h):
+        return
+    ax.axvline(h, **_HORIZON_STYLE)
+    for y, color in curves:
+        v = _value_at(times, y, h)
+        if np.isfinite(v):
+            ax.plot([h], [v], marker="o", markersize=5, color=color, zorder=5, linestyle="none")
+
+
+def _horizon_legend_handle():
+    from matplotlib.lines import Line2D
+
+    return Line2D([], [], marker="o", markersize=5, color="0.35", linestyle=":", label="training horizon")
+
+
+def _draw_latent_energy(
+    fig: Figure | SubFigure,
+    times: np.ndarray,
+    q_pred: np.ndarray,
+    q_proj: np.ndarray,
+    kin_pred: np.ndarray,
+    pot_pred: np.ndarray,
+    kin_true: np.ndarray,
+    pot_true: np.ndarray,
+    h: float,
+) -> tuple:
+    from matplotlib.lines import Line2D
+
+    # non-finite values (a diverged rollout) become gaps in the lines
+    q_pred, q_proj, kin_pred, pot_pred, kin_true, pot_true = (
+        np.where(np.isfinite(a), a, np.nan) for a in (q_pred, q_proj, kin_pred, pot_pred, kin_true, pot_true)
+    )
+    ax_q, ax_e = fig.subplots(1, 2)
+    d = q_pred.shape[1]
+    colors = [f"C{i % 10}" for i in range(d)]
+
+    # left: latent coordinates
+    handles = []
+    for i in range(d):
+        lbl = "q̃" if d == 1 else f"q̃{_subscript(i + 1)}"
+        ax_q.plot(times, q_pred[:, i], color=colors[i], linestyle="-", linewidth=1.6)
+        ax_q.plot(times, q_proj[:, i], color=colors[i], linestyle="--", linewidth=1.4)
+        handles.append(Line2D([], [], color=colors[i], linestyle="-", label=f"{lbl} predicted"))
+        handles.append(Line2D([], [], color=colors[i], linestyle="--", label=f"{lbl} projected"))
+    _mark_horizon(ax_q, times, [(q_pred[:, i], colors[i]) for i in range(d)], h)
+    if _horizon_in_range(times, h):
+        handles.append(_horizon_legend_handle())
+    ax_q.set_xlabel("t [s]")
+    ax_q.set_ylabel("q̃")
+    ax_q.set_title("latent coordinates")
+    ax_q.legend(handles=handles, fontsize="small", loc="best", ncol=1 if d <= 2 else 2)
+    ax_q.grid(alpha=0.3)
+
+    # right: energies
+    c_kin, c_pot = "C3", "C0"
+    ax_e.plot(times, kin_pred, color=c_kin, linestyle="-", linewidth=1.6)
+    ax_e.plot(times, kin_true, color=c_kin, linestyle="--", linewidth=1.4)
+    ax_e.plot(times, pot_pred, color=c_pot, linestyle="-", linewidth=1.6)
+    ax_e.plot(times, pot_true, color=c_pot, linestyle="--", linewidth=1.4)
+    _mark_horizon(ax_e, times, [(kin_pred, c_kin), (pot_pred, c_pot)], h)
+    e_handles = [
+        Line2D([], [], color=c_kin, linestyle="-", label="kinetic predicted"),
+        Line2D([], [], color=c_kin, linestyle="--", label="kinetic true"),
+        Line2D([], [], color=c_pot, linestyle="-", label="potential predicted"),
+        Line2D([], [], color=c_pot, linestyle="--", label="potential true"),
+    ]
+    if _horizon_in_range(times, h):
+        e_handles.append(_horizon_legend_handle())
+    ax_e.set_xlabel("t [s]")
+    ax_e.set_ylabel("energy [J]")
+    ax_e.set_title("kinetic and potential energy")
+    ax_e.legend(handles=e_handles, fontsize="small", loc="best")
+    ax_e.grid(alpha=0.3)
+
+    for ax in (ax_q, ax_e):
+        ax.set_xlim(times[0], times[-1] if times[-1] > times[0] else times[0] + 1.0)
+    return ax_q, ax_e
+
+
+def _subscript(n: int) -> str:
+    return str(n).translate(str.maketrans("0123456789", "₀₁₂₃₄₅₆₇₈₉"))
+
+
+def _draw_fields(
+    fig: Figure | SubFigure,
+    grid_shape: tuple[int, int],
+    extent: tuple[float, float, float, float],
+    times_shown: np.ndarray,
+    pred: np.ndarray,
+    true: np.ndarray,
+    h: float,
+):
+    import matplotlib as mpl
+
+    S = pred.shape[0]
+    err = np.abs(pred - true)  # NaN where pred is NaN
+    vmax = _finite_absmax(pred, true)
+    emax = _finite_absmax(err)
+
+    cmap_f = mpl.colormaps[_FIELD_CMAP].with_extremes(bad=_MASK_COLOR)
+    cmap_e = mpl.colormaps[_ERROR_CMAP].with_extremes(bad=_MASK_COLOR)
+
+    axes = np.asarray(fig.subplots(3, S, sharex=True, sharey=True, squeeze=False))
+    row_names = ("predicted", "true", "|pred − true|")
+    im_f = im_e = None
+    for s in range(S):
+        imgs = (pred[s], true[s], err[s])
+        for r in range(3):
+            ax = axes[r, s]
+            img = np.ma.masked_invalid(imgs[r].reshape(grid_shape).T)
+            if r < 2:
+                im = ax.imshow(img, origin="lower", extent=extent, cmap=cmap_f, vmin=-vmax, vmax=vmax,
+                               interpolation="nearest", aspect="equal")
+                im_f = im
+            else:
+                im = ax.imshow(img, origin="lower", extent=extent, cmap=cmap_e, vmin=0.0, vmax=emax,
+                               interpolation="nearest", aspect="equal")
+                im_e = im
+            ax.tick_params(labelsize="x-small")
+            if s == 0:
+                ax.set_ylabel(f"{row_names[r]}\ny", fontsize="small")
+            if r == 2:
+                ax.set_xlabel("x", fontsize="small")
+        t = float(times_shown[s])
+        where = "before horizon" if t < h else "after horizon"
+        axes[0, s].set_title(f"t = {_format_t(t)} s\n({where})", fontsize="small")
+
+    fig.colorbar(im_f, ax=axes[:2, :].ravel().tolist(), label="field q", shrink=0.9)
+    fig.colorbar(im_e, ax=axes[2, :].ravel().tolist(), label="absolute error", shrink=0.9)
+    return axes
+
+
+# --------------------------------------------------------------------------------------
+# public API
+# --------------------------------------------------------------------------------------
+
+
+def latent_and_energy_figure(
+    times,
+    q_pred,
+    q_proj,
+    kinetic_pred,
+    potential_pred,
+    kinetic_true,
+    potential_true,
+    train_horizon: float,
+    title: str = "",
+) -> Figure:
+    """Figure 3, top row: latent q̃(t) predicted (solid) vs projected (dashed), and kinetic/potential
+    energies predicted (solid) vs true (dashed), with the training horizon marked (● and a dotted line).
+
+    times: (T,) seconds, strictly increasing. q_pred, q_proj: (T, d) (a (T,) array means d = 1).
+    Energies: (T,) each, in joules.
+    """
+    t = _check_times(times)
+    T = t.shape[0]
+    qp = _check_latent(q_pred, "q_pred", T)
+    qr = _check_latent(q_proj, "q_proj", T, qp.shape[1])
+    kp = _check_series(kinetic_pred, "kinetic_pred", T)
+    pp = _check_series(potential_pred, "potential_pred", T)
+    kt = _check_series(kinetic_true, "kinetic_true", T)
+    pt = _check_series(potential_true, "potential_true", T)
+    h = _check_scalar(train_horizon, "train_horizon")
+
+    fig = Figure(figsize=(11.0, 4.0), layout="constrained")
+    _draw_latent_energy(fig, t, qp, qr, kp, pp, kt, pt, h)
+    if title:
+        fig.suptitle(title)
+    return fig
+
+
+def field_snapshots_figure(
+    grid_shape: tuple[int, int],
+    bounds,
+    times_shown: Sequence[float],
+    pred: np.ndarray,
+    true: np.ndarray,
+    train_horizon: float,
+    title: str = "",
+) -> Figure:
+    """Figure 3, bottom: one column per shown time with the predicted field, the true field and
+    |pred − true|. pred, true: (S, Nf) with S = len(times_shown), Nf = nx·ny, each row a field on a
+    row-major ('ij': first axis is x) grid of ``grid_shape = (nx, ny)``. ``bounds`` is
+    ((xmin, xmax), (ymin, ymax)) or (xmin, xmax, ymin, ymax).
+    """
+    gs = _check_grid_shape(grid_shape)
+    extent = _check_bounds(bounds)
+    ts = _check_times(times_shown, "times_shown", increasing=False)
+    S = ts.shape[0]
+    nf = gs[0] * gs[1]
+    p = _check_fields(pred, "pred", S, nf, "S")
+    q = _check_fields(true, "true", S, nf, "S")
+    h = _check_scalar(train_horizon, "train_horizon")
+
+    fig = Figure(figsize=(2.3 * S + 1.8, 7.0), layout="constrained")
+    _draw_fields(fig, gs, extent, ts, p, q, h)
+    if title:
+        fig.suptitle(title)
+    return fig
+
+
+def default_snapshot_indices(times, train_horizon: float, n_each: int = 2) -> list[int]:
+    """``n_each`` evenly spaced sample indices in each of [before horizon) and [after horizon].
+
+    Samples with t < train_horizon form the first half, the rest the second; in each half of n
+    samples, index start + floor((i + ½)·n / n_each) for i = 0..n_each−1 (for n_each = 2: the one-
+    and three-quarter points). For 100 samples at 0.05 s and horizon 2.5 s this gives [12, 37, 62, 87].
+    A half with no samples contributes nothing; duplicates (n_each > n) are dropped.
+    """
+    t = _check_times(times)
+    h = _check_scalar(train_horizon, "train_horizon")
+    if int(n_each) != n_each or n_each < 1:
+        raise ValueError(f"n_each must be a positive int, got {n_each!r}")
+    n_each = int(n_each)
+    split = int(np.searchsorted(t, h, side="left"))  # first index with t >= h
+    out: list[int] = []
+    for start, stop in ((0, split), (split, t.shape[0])):
+        n = stop - start
+        if n <= 0:
+            continue
+        for i in range(n_each):
+            k = start + int(np.floor((i + 0.5) * n / n_each))
+            k = min(k, stop - 1)
+            if not out or out[-1] != k:
+                out.append(k)
+    return out
+
+
+def figure3(
+    times,
+    q_pred,
+    q_proj,
+    energies: Mapping[str, np.ndarray],
+    grid_shape,
+    bounds,
+    pred_fields,
+    true_fields,
+    snapshot_indices: Sequence[int] | None,
+    train_horizon: float,
+    title: str = "",
+) -> Figure:
+    """The paper's Figure 3 in one figure: top row latent and energies, below the field grid.
+
+    energies: mapping with keys ``ENERGY_KEYS`` ("kinetic_pred", "potential_pred", "kinetic_true",
+    "potential_true"), each (T,). pred_fields, true_fields: (T, Nf). snapshot_indices: indices into
+    the T samples (None -> :func:`default_snapshot_indices`).
+    """
+    t = _check_times(times)
+    T = t.shape[0]
+    qp = _check_latent(q_pred, "q_pred", T)
+    qr = _check_latent(q_proj, "q_proj", T, qp.shape[1])
+    if not isinstance(energies, Mapping):
+        raise ValueError(f"energies must be a mapping with keys {ENERGY_KEYS}, got {type(energies).__name__}")
+    missing = [k for k in ENERGY_KEYS if k not in energies]
+    if missing:
+        raise ValueError(f"energies is missing keys {missing}; expected keys {ENERGY_KEYS}")
+    e = {k: _check_series(energies[k], f"energies[{k!r}]", T) for k in ENERGY_KEYS}
+    gs = _check_grid_shape(grid_shape)
+    extent = _check_bounds(bounds)
+    nf = gs[0] * gs[1]
+    pf = _check_fields(pred_fields, "pred_fields", T, nf, "T")
+    tf = _check_fields(true_fields, "true_fields", T, nf, "T")
+    h = _check_scalar(train_horizon, "train_horizon")
+
+    if snapshot_indices is None:
+        idx = default_snapshot_indices(t, h)
+    else:
+        try:
+            idx = [int(i) for i in snapshot_indices]
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"snapshot_indices must be a sequence of ints, got {snapshot_indices!r}") from exc
+        if any(int(i) != i for i in snapshot_indices):
+            raise ValueError(f"snapshot_indices must be ints, got {list(snapshot_indices)!r}")
+    if not idx:
+        raise ValueError("snapshot_indices must contain at least one index")
+    bad = [i for i in idx if not (-T <= i < T)]
+    if bad:
+        raise ValueError(f"snapshot_indices must lie in [0, T) with T = len(times) = {T}, got {bad}")
+    idx = [i % T for i in idx]
+    S = len(idx)
+
+    width = max(11.0, 2.3 * S + 1.8)
+    fig = Figure(figsize=(width, 11.5), layout="constrained")
+    top, bottom = fig.subfigures(2, 1, height_ratios=[1.0, 1.9])
+    _draw_latent_energy(top, t, qp, qr, e["kinetic_pred"], e["potential_pred"],
+                        e["kinetic_true"], e["potential_true"], h)
+    _draw_fields(bottom, gs, extent, t[idx], pf[idx], tf[idx], h)
+    if title:
+        fig.suptitle(title)
+    return fig
+
+
+def save_figure(fig: Figure, path) -> Path:
+    """Write ``fig`` as a PNG (dpi 120) to ``path`` atomically; return the path.
+
+    Renders to a uniquely named temporary file in the same directory, then ``os.replace``s it onto
+    ``path``, so a reader never sees a half-written file. Parent directories are created. The format
+    is always PNG, whatever the suffix of ``path``.
+    """
+    if not isinstance(fig, Figure):
+        raise ValueError(f"fig must be a matplotlib.figure.Figure, got {type(fig).__name__}")
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}.tmp.png")
+    try:
+        fig.savefig(tmp, format="png", dpi=_DPI)
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            tmp.unlink()
+        except FileNotFoundError:
+            pass
+        raise
+    return path

@@ -1,0 +1,140 @@
+"""Quadrature rules on a box-shaped reference body B.
+
+Every integral over B in lnf is a quadrature sum Σ_j w_j f(X_j). The rule used inside the reduced
+dynamics is a speed/accuracy knob of its own (DESIGN.md §1): tensor Gauss–Legendre rules integrate
+polynomials of degree 2n−1 per axis exactly; uniform midpoint grids converge only as O(h²).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+import torch
+from torch import Tensor
+
+Bounds = Sequence[Sequence[float]]
+
+
+@dataclass(frozen=True)
+class Quadrature:
+    """Points X_j (N, dim_B) and weights w_j (N,) with Σ_j w_j f(X_j) ≈ ∫_B f dX (float64 unless cast)."""
+
+    points: Tensor
+    weights: Tensor
+
+    def __post_init__(self) -> None:
+        if self.points.ndim != 2:
+            raise ValueError(f"quadrature points must have shape (N, dim_B), got {tuple(self.points.shape)}")
+        if self.points.shape[0] == 0:
+            raise ValueError("quadrature has no points: an integral over B needs at least one point")
+        if self.weights.shape != (self.points.shape[0],):
+            raise ValueError(
+                f"quadrature weights must have shape ({self.points.shape[0]},), got {tuple(self.weights.shape)}"
+            )
+        if not (torch.isfinite(self.points).all() and torch.isfinite(self.weights).all()):
+            raise ValueError("quadrature points and weights must be finite")
+
+    def __len__(self) -> int:
+        return self.points.shape[0]
+
+    def to(self, *args, **kwargs) -> "Quadrature":
+        return Quadrature(self.points.to(*args, **kwargs), self.weights.to(*args, **kwargs))
+
+
+def _check_bounds(bounds: Bounds) -> np.ndarray:
+    b = np.asarray(bounds, dtype=np.float64)
+    if b.ndim != 2 or b.shape[1] != 2 or not np.all(b[:, 1] > b[:, 0]):
+        raise ValueError(f"bounds must be [[lo, hi], ...] with hi > lo per axis, got {bounds!r}")
+    return b
+
+
+def _tensor_product(nodes: list[np.ndarray], weights: list[np.ndarray]) -> Quadrature:
+    mesh = np.meshgrid(*nodes, indexing="ij")
+    wmesh = np.meshgrid(*weights, indexing="ij")
+    points = np.stack([m.reshape(-1) for m in mesh], axis=-1)
+    w = np.prod(np.stack([m.reshape(-1) for m in wmesh], axis=-1), axis=-1)
+    return Quadrature(torch.as_tensor(points, dtype=torch.float64), torch.as_tensor(w, dtype=torch.float64))
+
+
+def midpoint_grid(resolution: int | Sequence[int], bounds: Bounds) -> Tensor:
+    """Cell-centre points of a uniform grid, row-major ('ij'): (prod(resolution), dim_B)."""
+    return uniform_grid(resolution, bounds).points
+
+
+def uniform_grid(resolution: int | Sequence[int], bounds: Bounds) -> Quadrature:
+    """Midpoint rule on a uniform grid of `resolution` cells per axis (equal weights, O(h²))."""
+    b = _check_bounds(bounds)
+    res = [int(resolution)] * len(b) if np.isscalar(resolution) else [int(r) for r in resolution]
+    if len(res) != len(b) or min(res) < 1:
+        raise ValueError(f"grid resolution must be a positive int per axis of {len(b)}, got {resolution!r}")
+    nodes, weights = [], []
+    for (lo, hi), n in zip(b, res):
+        h = (hi - lo) / n
+        nodes.append(lo + h * (np.arange(n) + 0.5))
+        weights.append(np.full(n, h))
+    return _tensor_product(nodes, weights)
+
+
+def gauss_legendre_rule(order: int | Sequence[int], bounds: Bounds) -> Quadrature:
+    """Tensor Gauss–Legendre rule, `order` nodes per axis: exact for degree ≤ 2·order − 1 per axis."""
+    b = _check_bounds(bounds)
+    orders = [int(order)] * len(b) if np.isscalar(order) else [int(o) for o in order]
+    if len(orders) != len(b) or min(orders) < 1:
+        raise ValueError(f"Gauss–Legendre order must be a positive int per axis of {len(b)}, got {order!r}")
+    nodes, weights = [], []
+    for (lo, hi), n in zip(b, orders):
+        x, w = np.polynomial.legendre.leggauss(n)
+        nodes.append(0.5 * (hi - lo) * x + 0.5 * (hi + lo))
+        weights.append(0.5 * (hi - lo) * w)
+    return _tensor_product(nodes, weights)
+
+
+class QuadratureRule:
+    """A recipe that builds a :class:`Quadrature` for given bounds (one class per Hydra option)."""
+
+    def build(self, bounds: Bounds) -> Quadrature:  # pragma: no cover - interface
+        raise NotImplementedError
+
+    def describe(self) -> str:  # pragma: no cover - interface
+        raise NotImplementedError
+
+
+class GaussLegendre(QuadratureRule):
+    def __init__(self, order: int | Sequence[int] = 8) -> None:
+        self.order = order
+
+    def build(self, bounds: Bounds) -> Quadrature:
+        return gauss_legendre_rule(self.order, bounds)
+
+    def describe(self) -> str:
+        return f"gauss_legendre(order={self.order})"
+
+
+class UniformGrid(QuadratureRule):
+    def __init__(self, resolution: int | Sequence[int] = 64) -> None:
+        self.resolution = resolution
+
+    def build(self, bounds: Bounds) -> Quadrature:
+        return uniform_grid(self.resolution, bounds)
+
+    def describe(self) -> str:
+        return f"uniform_grid(resolution={self.resolution})"
+
+
+class GivenPoints(QuadratureRule):
+    """User-supplied points (N, dim_B) and weights (N,), e.g. mesh vertices with lumped areas."""
+
+    def __init__(self, points: Sequence[Sequence[float]], weights: Sequence[float]) -> None:
+        self.points = torch.as_tensor(np.asarray(points, dtype=np.float32))
+        self.weights = torch.as_tensor(np.asarray(weights, dtype=np.float32))
+
+    def build(self, bounds: Bounds) -> Quadrature:
+        b = _check_bounds(bounds)
+        quad = Quadrature(self.points, self.weights)
+        if quad.points.shape[1] != len(b):
+            raise ValueError(f"given quadrature points have dim {quad.points.shape[1]}, the body has dim {len(b)}")
+        return quad
+
+    def describe(self) -> str:
+        return f"given_points(n={len(self.weights)})"

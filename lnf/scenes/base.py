@@ -1,0 +1,104 @@
+"""What a scene is: a body B, a mass density ω0, a potential V, a full-order simulator, an energy scale."""
+from __future__ import annotations
+
+from typing import Any, Optional
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from lnf.quadrature import Quadrature
+
+
+class DiscretePotential:
+    """V restricted to fields sampled at fixed quadrature points.
+
+    Call with q (B, N, A) and, when ``needs_gradient``, G = ∇_X q (B, N, A, dim_B); returns V (B,).
+    """
+
+    needs_gradient: bool = False
+
+    def __call__(self, q: Tensor, G: Optional[Tensor] = None) -> Tensor:  # pragma: no cover - interface
+        raise NotImplementedError
+
+    def gradient(self, q: Tensor, G: Optional[Tensor] = None) -> tuple[Tensor, Optional[Tensor]]:
+        """(∂V/∂q_j (B, N, A), ∂V/∂G_j (B, N, A, dim_B) or None): derivatives w.r.t. nodal values.
+
+        Default: exact, by torch.func (works under no_grad and inference_mode). Override with a closed
+        form where one is cheap.
+        """
+        from torch.func import grad, vmap
+
+        if self.needs_gradient:
+            dq, dG = vmap(grad(lambda a, b: self(a[None], b[None])[0], argnums=(0, 1)))(q, G)
+            return dq, dG
+        return vmap(grad(lambda a: self(a[None])[0]))(q), None
+
+
+class Scene:
+    """Base class of scenes. Subclasses set the attributes and implement the methods below.
+
+    Attributes:
+        name: scene name used in configs and file attributes.
+        field_dim: dim_A, dimension of the configuration field's values.
+        bounds: [[lo, hi], ...] of the box-shaped body B, one row per material dimension.
+        energy_scale: energy used to normalise energy errors (DESIGN.md §6).
+        state_names: names of the full-order state's components (for files and plots).
+    """
+
+    name: str = "scene"
+    field_dim: int = 1
+    bounds: list[list[float]] = [[-1.0, 1.0], [-1.0, 1.0]]
+    energy_scale: float = 1.0
+    state_names: tuple[str, ...] = ()
+
+    @property
+    def body_dim(self) -> int:
+        return len(self.bounds)
+
+    # -- the Lagrangian ------------------------------------------------------------------------
+    def density(self, points: Tensor) -> Tensor:
+        """ω0 at points (..., N, dim_B) → (..., N)."""
+        raise NotImplementedError
+
+    def potential(self, quadrature: Quadrature) -> DiscretePotential:
+        raise NotImplementedError
+
+    # -- the full-order model ------------------------------------------------------------------
+    def sample_initial_states(self, n: int, rng: np.random.Generator) -> np.ndarray:
+        raise NotImplementedError
+
+    def simulate(self, initial_states: np.ndarray, times: np.ndarray) -> np.ndarray:
+        """Ground-truth full-order states (n, T, S) at `times` from initial states (n, S)."""
+        raise NotImplementedError
+
+    def fields(self, states: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Configuration field q and velocity field q̇ (…, N, A) of full-order states (…, S) at points (N, dim_B)."""
+        raise NotImplementedError
+
+    def true_energy_parts(self, states: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(kinetic, potential) energy of full-order states (…, S) → each (…)."""
+        raise NotImplementedError
+
+    def true_energy(self, states: np.ndarray) -> np.ndarray:
+        """Total energy of full-order states (…, S) → (…)."""
+        kinetic, potential = self.true_energy_parts(states)
+        return kinetic + potential
+
+    # -- description ---------------------------------------------------------------------------
+    def params(self) -> dict[str, Any]:
+        """Constructor arguments: rebuild with ``type(scene)(**scene.params())``."""
+        raise NotImplementedError
+
+    def spec(self) -> dict[str, Any]:
+        """Self-describing spec, ``{"_target_": "module.Class", **params}``."""
+        cls = type(self)
+        return {"_target_": f"{cls.__module__}.{cls.__qualname__}", **self.params()}
+
+    def __repr__(self) -> str:
+        args = ", ".join(f"{k}={v!r}" for k, v in self.params().items())
+        return f"{type(self).__name__}({args})"
+
+
+def as_tensor(x: np.ndarray, like: Tensor) -> Tensor:
+    return torch.as_tensor(x, dtype=like.dtype, device=like.device)

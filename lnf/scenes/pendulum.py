@@ -1,0 +1,134 @@
+"""The paper's benchmark: a pendulum lifted into a scalar field on Ω = [-1, 1]² (DESIGN.md §5)."""
+from __future__ import annotations
+
+from typing import Any, Optional, Sequence
+
+import numpy as np
+import torch
+from numpy.polynomial import legendre
+from scipy.integrate import solve_ivp
+from torch import Tensor
+
+from lnf.quadrature import Quadrature
+from lnf.scenes.base import DiscretePotential, Scene
+
+
+def legendre_mode(points: np.ndarray, degrees: Sequence[int]) -> np.ndarray:
+    """u(X) = Π_k P_{n_k}(X_k) / ‖Π_k P_{n_k}‖_{L²([-1,1]^dim)}, so that ‖u‖_{L²} = 1. points (N, dim) → (N,)."""
+    points = np.asarray(points, dtype=np.float64)
+    u = np.ones(points.shape[:-1])
+    norm2 = 1.0
+    for k, n in enumerate(degrees):
+        u = u * legendre.Legendre.basis(int(n))(points[..., k])
+        norm2 *= 2.0 / (2 * int(n) + 1)
+    return u / np.sqrt(norm2)
+
+
+class ProjectedCosinePotential(DiscretePotential):
+    """V(q) = m g ℓ (1 − cos⟨q, u⟩) with ⟨q, u⟩ = Σ_j w_j u(X_j) q_j (non-local)."""
+
+    needs_gradient = False
+
+    def __init__(self, weighted_mode: Tensor, mgl: float) -> None:
+        self.weighted_mode = weighted_mode  # (N,) = w_j u(X_j)
+        self.mgl = mgl
+
+    def angle(self, q: Tensor) -> Tensor:
+        return torch.einsum("bn,n->b", q[..., 0], self.weighted_mode.to(q))
+
+    def __call__(self, q: Tensor, G: Optional[Tensor] = None) -> Tensor:
+        return self.mgl * (1.0 - torch.cos(self.angle(q)))
+
+    def gradient(self, q: Tensor, G: Optional[Tensor] = None) -> tuple[Tensor, None]:
+        s = self.mgl * torch.sin(self.angle(q))
+        return (s[:, None] * self.weighted_mode.to(q)[None, :])[..., None], None
+
+
+class LiftedPendulum(Scene):
+    """q(X, t) = u(X) θ(t), L = ½ mℓ² ‖q̇‖²_{L²} − m g ℓ (1 − cos⟨q, u⟩).
+
+    Args:
+        mass, length, gravity: pendulum parameters m [kg], ℓ [m], g [m/s²].
+        theta0_range: initial angle θ0 ~ U(range) [rad].
+        omega0_range: initial angular velocity θ̇0 ~ U(range) [rad/s].
+        degrees: Legendre degrees (n_x, n_y) of the mode u.
+        rtol, atol: tolerances of the ground-truth ODE solve (DOP853).
+    """
+
+    name = "pendulum"
+    field_dim = 1
+    state_names = ("theta", "theta_dot")
+
+    def __init__(
+        self,
+        mass: float = 1.0,
+        length: float = 1.0,
+        gravity: float = 9.81,
+        theta0_range: Sequence[float] = (-np.pi / 2, np.pi / 2),
+        omega0_range: Sequence[float] = (-1.0, 1.0),
+        degrees: Sequence[int] = (3, 4),
+        rtol: float = 1e-11,
+        atol: float = 1e-11,
+    ) -> None:
+        for key, value in [("mass", mass), ("length", length), ("gravity", gravity)]:
+            if not (np.isfinite(value) and value > 0):
+                raise ValueError(f"scene.{key} must be a positive finite number, got {value!r}")
+        for key, rng in [("theta0_range", theta0_range), ("omega0_range", omega0_range)]:
+            if len(rng) != 2 or not rng[0] <= rng[1]:
+                raise ValueError(f"scene.{key} must be [low, high] with low ≤ high, got {list(rng)!r}")
+        self.mass, self.length, self.gravity = float(mass), float(length), float(gravity)
+        self.theta0_range = [float(v) for v in theta0_range]
+        self.omega0_range = [float(v) for v in omega0_range]
+        self.degrees = [int(n) for n in degrees]
+        self.rtol, self.atol = float(rtol), float(atol)
+        self.bounds = [[-1.0, 1.0]] * len(self.degrees)
+        self.energy_scale = self.mass * self.gravity * self.length
+
+    def params(self) -> dict[str, Any]:
+        return dict(mass=self.mass, length=self.length, gravity=self.gravity, theta0_range=self.theta0_range,
+                    omega0_range=self.omega0_range, degrees=self.degrees, rtol=self.rtol, atol=self.atol)
+
+    @property
+    def inertia(self) -> float:
+        return self.mass * self.length**2
+
+    def mode(self, points: np.ndarray) -> np.ndarray:
+        return legendre_mode(points, self.degrees)
+
+    def density(self, points: Tensor) -> Tensor:
+        return torch.full(points.shape[:-1], self.inertia, dtype=points.dtype, device=points.device)
+
+    def potential(self, quadrature: Quadrature) -> ProjectedCosinePotential:
+        u = torch.as_tensor(self.mode(quadrature.points.double().cpu().numpy()), dtype=quadrature.weights.dtype)
+        return ProjectedCosinePotential(quadrature.weights * u.to(quadrature.weights.device), self.energy_scale)
+
+    # -- full-order model ---------------------------------------------------------------------------------
+    def sample_initial_states(self, n: int, rng: np.random.Generator) -> np.ndarray:
+        theta = rng.uniform(*self.theta0_range, size=n)
+        omega = rng.uniform(*self.omega0_range, size=n)
+        return np.stack([theta, omega], axis=-1)
+
+    def simulate(self, initial_states: np.ndarray, times: np.ndarray) -> np.ndarray:
+        k = self.gravity / self.length
+
+        def rhs(_t: float, y: np.ndarray) -> np.ndarray:
+            return np.array([y[1], -k * np.sin(y[0])])
+
+        out = np.empty((len(initial_states), len(times), 2))
+        for i, y0 in enumerate(np.asarray(initial_states, dtype=np.float64)):
+            sol = solve_ivp(rhs, (times[0], times[-1]), y0, method="DOP853", t_eval=times,
+                            rtol=self.rtol, atol=self.atol)
+            if not sol.success:
+                raise RuntimeError(f"pendulum ground truth failed for initial state {y0}: {sol.message}")
+            out[i] = sol.y.T
+        return out
+
+    def fields(self, states: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        u = self.mode(points)  # (N,)
+        q = states[..., 0, None] * u
+        qdot = states[..., 1, None] * u
+        return q[..., None], qdot[..., None]
+
+    def true_energy_parts(self, states: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        theta, omega = states[..., 0], states[..., 1]
+        return 0.5 * self.inertia * omega**2, self.energy_scale * (1.0 - np.cos(theta))

@@ -1,0 +1,1 @@
+"""Lightning glue around the plain-torch core: LightningModule, DataModule, callbacks."""

@@ -1,0 +1,132 @@
+"""Evaluation callback: reduced rollouts, energy checks and Figure 3, apart from the LightningModule."""
+from __future__ import annotations
+
+import json
+import logging
+import os
+import time
+from pathlib import Path
+from typing import Any, Optional
+
+import lightning.pytorch as pl
+import numpy as np
+import torch
+
+from lnf.evaluation import RolloutEvaluation, evaluate_rollouts, long_horizon_energy
+from lnf.integrators import Integrator, get_integrator
+from lnf.quadrature import midpoint_grid
+
+log = logging.getLogger("lnf.evaluation")
+
+
+def write_json_atomic(path: str | Path, payload: dict[str, Any]) -> Path:
+    """Write JSON to a temporary name in the same folder, then rename (no half-written file)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + f".tmp-{os.getpid()}")
+    try:
+        tmp.write_text(json.dumps(payload, indent=2, sort_keys=True))
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return path
+
+
+def save_evaluation_figures(result: RolloutEvaluation, scene: Any, grid_shape: tuple[int, ...],
+                            train_horizon: float, out_dir: Path, prefix: str, n_trajectories: int = 2) -> list[Path]:
+    """Figure 3 (latent, energies, fields and errors before/after the horizon) for the first trajectories."""
+    from lnf.plotting import default_snapshot_indices, figure3, save_figure
+
+    paths = []
+    idx = default_snapshot_indices(result.times, train_horizon)
+    for i in range(min(n_trajectories, result.q_pred.shape[0])):
+        energies = {k: v[i] for k, v in result.energies.items()}
+        fig = figure3(result.times, result.q_pred[i], result.q_ref[i], energies, grid_shape, scene.bounds,
+                      result.pred_fields[i, ..., 0], result.true_fields[i, ..., 0], idx, train_horizon,
+                      title=f"{prefix} trajectory {i}")
+        paths.append(save_figure(fig, out_dir / f"{prefix}_trajectory{i}.png"))
+    return paths
+
+
+class RolloutEvaluationCallback(pl.Callback):
+    """Rolls out the reduced dynamics on held-out trajectories and logs DESIGN.md §6 metrics.
+
+    Runs on the validation split every `every_n_epochs` validation epochs (on `val_trajectories`
+    trajectories and a `val_resolution`² grid) and on the test split at test time (all test
+    trajectories, the stored fine grid), where it also runs the long-horizon energy check, draws
+    Figure 3 to PNG and wandb, and writes ``metrics.json``.
+
+    Args:
+        integrator: integrator object or spec for the rollouts.
+        output_dir: where figures/ and metrics.json go.
+        every_n_epochs: validation rollouts every this many validation epochs (0 disables them).
+        val_trajectories: how many validation trajectories to roll out.
+        val_resolution: evaluation grid per axis during validation.
+        long_steps, long_trajectories, long_dt: the long-horizon energy check at test (0 steps disables).
+        figures: how many test trajectories get a Figure 3.
+    """
+
+    def __init__(self, integrator: "Integrator | dict | str" = "implicit_midpoint", output_dir: str = ".",
+                 every_n_epochs: int = 5, val_trajectories: int = 4, val_resolution: int = 32,
+                 long_steps: int = 10000, long_trajectories: int = 4, long_dt: float = 0.05,
+                 figures: int = 2) -> None:
+        super().__init__()
+        self.integrator = get_integrator(integrator)
+        self.output_dir = Path(output_dir)
+        self.every_n_epochs, self.val_trajectories, self.val_resolution = every_n_epochs, val_trajectories, val_resolution
+        self.long_steps, self.long_trajectories, self.long_dt = long_steps, long_trajectories, long_dt
+        self.figures = figures
+        self.test_metrics: dict[str, float] = {}
+        self._val_count = 0
+
+    @staticmethod
+    def _train_horizon(split: Any) -> float:
+        return float(split.times[split.train_times]) if split.train_times < len(split.times) else float(split.times[-1])
+
+    def on_validation_epoch_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
+        if trainer.sanity_checking or self.every_n_epochs <= 0:
+            return
+        self._val_count += 1
+        if self._val_count % self.every_n_epochs:
+            return
+        split = trainer.datamodule.split("val")
+        n = min(self.val_trajectories, len(split))
+        points = midpoint_grid(self.val_resolution, pl_module.model.scene.bounds).numpy()
+        with torch.inference_mode(False), torch.no_grad():
+            result = evaluate_rollouts(pl_module.model, split.states[:n], split.times, points,
+                                       self._train_horizon(split), integrator=self.integrator)
+        keys = ["field_rel_l2/all/median", "field_rel_l2/extrapolation/median", "projection_rel_l2/all/median",
+                "energy_rel_err/max", "latent_rmse/median", "vpt/median"]
+        for key in keys:
+            pl_module.log(f"val/{key}", result.metrics[key], sync_dist=True)
+
+    def on_test_epoch_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
+        model = pl_module.model
+        split = trainer.datamodule.split("test")
+        horizon = self._train_horizon(split)
+        start = time.perf_counter()
+        with torch.inference_mode(False), torch.no_grad():
+            result = evaluate_rollouts(model, split.states, split.times, split.fine_points, horizon,
+                                       true_fields=split.fields, true_velocities=split.velocities,
+                                       integrator=self.integrator)
+            metrics = dict(result.metrics)
+            if self.long_steps > 0:
+                n = min(self.long_trajectories, len(split))
+                metrics.update(long_horizon_energy(model, split.states[:n, 0], split.fine_points, self.long_dt,
+                                                   self.long_steps, integrator=self.integrator))
+        metrics["evaluation_seconds"] = time.perf_counter() - start
+        self.test_metrics = metrics
+        if trainer.is_global_zero:
+            for key, value in metrics.items():
+                pl_module.log(f"test/{key}", float(value), rank_zero_only=True)
+            res = int(round(len(split.fine_points) ** (1 / model.scene.body_dim)))
+            grid_shape = (res,) * model.scene.body_dim
+            paths = save_evaluation_figures(result, model.scene, grid_shape, horizon, self.output_dir / "figures",
+                                            "test", self.figures)
+            self._log_images(trainer, paths)
+
+    @staticmethod
+    def _log_images(trainer: pl.Trainer, paths: list[Path]) -> None:
+        for logger in trainer.loggers:
+            if type(logger).__name__ == "WandbLogger" and paths:
+                logger.log_image(key="test/figure3", images=[str(p) for p in paths])

@@ -1,0 +1,84 @@
+"""LightningModule: the Lagrangian neural field, its two losses, and the optimiser."""
+from __future__ import annotations
+
+import math
+from typing import Any, Optional
+
+import lightning.pytorch as pl
+import torch
+from torch import Tensor
+
+from lnf.model import build_model
+
+
+class LNFModule(pl.LightningModule):
+    """Trains φ and ρ̃ with ℓ = ℓ^r + ℓ^p (DESIGN.md §2).
+
+    All arguments are plain dicts so that the checkpoint describes itself (``save_hyperparameters``).
+
+    Args:
+        scene, model, quadrature: ``_target_`` specs of the scene, the LagrangianNeuralField (its other
+            arguments) and the quadrature rule of the reduced dynamics.
+        optimizer: ``lr`` (field), ``step_size_lr`` (log α), ``weight_decay``, ``warmup_steps``,
+            ``schedule`` ('cosine' or 'constant'), ``min_lr_ratio``.
+        data: the data settings the model was trained on (kept for re-evaluation).
+    """
+
+    def __init__(self, scene: dict[str, Any], model: dict[str, Any], quadrature: dict[str, Any],
+                 optimizer: Optional[dict[str, Any]] = None, data: Optional[dict[str, Any]] = None) -> None:
+        super().__init__()
+        self.save_hyperparameters()
+        self.model = build_model(scene, model, quadrature)
+        self.optimizer_cfg = {"lr": 3e-4, "step_size_lr": 1e-2, "weight_decay": 0.0, "warmup_steps": 0,
+                              "schedule": "cosine", "min_lr_ratio": 0.0, **(optimizer or {})}
+
+    def _step(self, batch: tuple[Tensor, Tensor], stage: str) -> Tensor:
+        points, values = batch
+        out = self.model.losses(points, values)
+        bs = points.shape[0]
+        on_step = stage == "train"
+        self.log(f"{stage}/loss", out["loss"], prog_bar=True, batch_size=bs, on_step=on_step, on_epoch=True)
+        self.log(f"{stage}/reconstruction", out["reconstruction"], batch_size=bs, on_step=on_step, on_epoch=True)
+        self.log(f"{stage}/projection", out["projection"], batch_size=bs, on_step=on_step, on_epoch=True)
+        if stage == "train":
+            self.log("train/step_size", self.model.step_size.detach(), batch_size=bs, on_step=True, on_epoch=False)
+        return out["loss"]
+
+    def training_step(self, batch: tuple[Tensor, Tensor], batch_idx: int) -> Tensor:
+        loss = self._step(batch, "train")
+        if not torch.isfinite(loss):
+            raise FloatingPointError(
+                f"training loss became {loss.item()} at step {self.global_step}; lower optimizer.lr "
+                f"(now {self.optimizer_cfg['lr']}) or model.step_size")
+        return loss
+
+    def validation_step(self, batch: tuple[Tensor, Tensor], batch_idx: int) -> Tensor:
+        return self._step(batch, "val")
+
+    def test_step(self, batch: tuple[Tensor, Tensor], batch_idx: int) -> Tensor:
+        return self._step(batch, "test")
+
+    def configure_optimizers(self) -> dict[str, Any]:
+        cfg = self.optimizer_cfg
+        field_params = list(self.model.field.parameters())
+        opt = torch.optim.Adam([
+            {"params": field_params, "lr": cfg["lr"], "weight_decay": cfg["weight_decay"]},
+            {"params": [self.model.log_step_size], "lr": cfg["step_size_lr"], "weight_decay": 0.0},
+        ])
+        total = max(int(self.trainer.estimated_stepping_batches), 1)
+        warmup = int(cfg["warmup_steps"])
+        floor = float(cfg["min_lr_ratio"])
+        schedule = cfg["schedule"]
+        if schedule not in ("cosine", "constant"):
+            raise ValueError(f"optimizer.schedule must be 'cosine' or 'constant', got {schedule!r}")
+
+        def factor(step: int) -> float:
+            if step < warmup:
+                return (step + 1) / warmup
+            if schedule == "constant":
+                return 1.0
+            progress = min((step - warmup) / max(total - warmup, 1), 1.0)
+            return floor + (1.0 - floor) * 0.5 * (1.0 + math.cos(math.pi * progress))
+
+        sched = torch.optim.lr_scheduler.LambdaLR(opt, factor)
+        return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "step"}}

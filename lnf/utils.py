@@ -1,0 +1,72 @@
+"""Small helpers shared by the entry points: config checks, run metadata, the summary table."""
+from __future__ import annotations
+
+import platform
+import subprocess
+import sys
+from importlib import metadata
+from typing import Any
+
+from omegaconf import DictConfig, OmegaConf
+
+SUMMARY_KEYS = [
+    "field_rel_l2/all/median", "field_rel_l2/in_horizon/median", "field_rel_l2/extrapolation/median",
+    "field_rel_l2/all/max", "projection_rel_l2/all/median", "latent_rmse/median", "energy_rel_err/max",
+    "energy_drift/max", "energy_drift_long/max", "vpt/median", "rollout_seconds_per_trajectory",
+    "rollout_seconds_per_step", "train_seconds", "total_seconds",
+]
+
+
+def check_config(cfg: DictConfig) -> None:
+    """Clear errors for settings that would otherwise fail deep inside torch."""
+    model = cfg.model
+    if int(model.latent_dim) < 1:
+        raise ValueError(f"model.latent_dim must be ≥ 1, got {model.latent_dim}")
+    if int(model.reduction_steps) < 1:
+        raise ValueError(f"model.reduction_steps (K) must be ≥ 1, got {model.reduction_steps}")
+    missing = {f"{k}.{m}" for k, v in cfg.items() if k != "hydra" and OmegaConf.is_config(v)
+               for m in OmegaConf.missing_keys(v)}
+    if missing:
+        raise ValueError(f"missing required config values: {sorted(missing)}")
+
+
+def resolved_config(cfg: DictConfig) -> dict[str, Any]:
+    """The resolved config as plain containers, without Hydra's own `hydra` node (present under compose)."""
+    return {k: OmegaConf.to_container(v, resolve=True) if OmegaConf.is_config(v) else v
+            for k, v in cfg.items() if k != "hydra"}
+
+
+def run_metadata(cfg: DictConfig) -> dict[str, Any]:
+    """Package versions, git commit and the resolved config of a run."""
+    versions = {}
+    for pkg in ["lnf", "torch", "lightning", "hydra-core", "omegaconf", "wandb", "h5py", "numpy", "scipy", "torchdiffeq"]:
+        try:
+            versions[pkg] = metadata.version(pkg)
+        except metadata.PackageNotFoundError:
+            versions[pkg] = None
+    try:
+        commit = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, timeout=5,
+                                cwd=str(__import__("pathlib").Path(__file__).resolve().parent)).stdout.strip() or None
+    except (OSError, subprocess.SubprocessError):
+        commit = None
+    return {"versions": versions, "git_commit": commit, "python": sys.version, "platform": platform.platform(),
+            "config": resolved_config(cfg)}
+
+
+def print_summary(metrics: dict[str, float], title: str = "test metrics") -> None:
+    """A short table of the headline metrics (rich if available)."""
+    rows = [(k, metrics[k]) for k in SUMMARY_KEYS if k in metrics]
+    try:
+        from rich.console import Console
+        from rich.table import Table
+
+        table = Table(title=title)
+        table.add_column("metric")
+        table.add_column("value", justify="right")
+        for k, v in rows:
+            table.add_row(k, f"{v:.4g}")
+        Console().print(table)
+    except ImportError:  # pragma: no cover
+        print(title)
+        for k, v in rows:
+            print(f"  {k:40s} {v:.4g}")

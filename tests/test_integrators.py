@@ -1,0 +1,78 @@
+"""Orders of accuracy and energy behaviour on the analytic pendulum."""
+import numpy as np
+import pytest
+import torch
+
+from analytic import LinearModeEmbedding
+from lnf.dynamics import ReducedDynamics
+from lnf.integrators import Dopri5, ImplicitMidpoint, RK4, RolloutDivergedError, get_integrator
+from lnf.quadrature import gauss_legendre_rule
+
+
+@pytest.fixture
+def dyn(pendulum):
+    quad = gauss_legendre_rule(6, pendulum.bounds).to(torch.float64)
+    return ReducedDynamics(LinearModeEmbedding(pendulum).jet, pendulum, quad)
+
+
+STATE = np.array([[1.0, 0.5]])
+
+
+def _final_error(dyn, pendulum, integrator, dt, horizon=1.0):
+    steps = int(round(horizon / dt))
+    ref = pendulum.simulate(STATE, np.array([0.0, horizon]))[:, -1]
+    traj = integrator.integrate(dyn, torch.tensor(STATE[:, :1]), torch.tensor(STATE[:, 1:]), dt, steps,
+                                record_every=steps)
+    return abs(float(traj.q[0, -1, 0]) - ref[0, 0])
+
+
+@pytest.mark.parametrize("integrator,order", [(RK4(), 4), (ImplicitMidpoint(order=2), 2),
+                                              (ImplicitMidpoint(order=4), 4)])
+def test_order_of_accuracy(dyn, pendulum, integrator, order):
+    e1 = _final_error(dyn, pendulum, integrator, 0.1)
+    e2 = _final_error(dyn, pendulum, integrator, 0.05)
+    assert np.log2(e1 / e2) == pytest.approx(order, abs=0.35)
+
+
+def test_dopri5_meets_tolerance(dyn, pendulum):
+    assert _final_error(dyn, pendulum, Dopri5(rtol=1e-10, atol=1e-10), 0.05) < 1e-8
+
+
+def _energy_drift(dyn, integrator, dt, steps):
+    q0, v0 = torch.tensor(STATE[:, :1]), torch.tensor(STATE[:, 1:])
+    traj = integrator.integrate(dyn, q0, v0, dt, steps, record_every=10)
+    T, V = dyn.energies(traj.q, traj.v)
+    E = (T + V)[0]
+    return (E - E[0]).abs() / 9.81
+
+
+def test_midpoint_energy_bounded_rk4_drifts(dyn):
+    """Long run at a coarse step: midpoint's energy error stays bounded, RK4's grows with time."""
+    steps, dt = 1000, 0.2
+    mid = _energy_drift(dyn, ImplicitMidpoint(order=2), dt, steps)
+    rk4 = _energy_drift(dyn, RK4(), dt, steps)
+    n = len(mid) // 4
+    assert mid[-n:].max() < 1.5 * mid[:n].max()  # bounded: no growth from first to last quarter
+    assert rk4[-n:].max() > 2 * rk4[:n].max()  # drifts (RK4 is dissipative on the pendulum)
+    assert mid.max() < 0.1 * rk4.max()
+
+
+def test_divergence_is_reported_with_step_and_time(dyn):
+    q0 = torch.tensor([[1.0]], dtype=torch.float64)
+    v0 = torch.tensor([[1e5]], dtype=torch.float64)
+    with pytest.raises(RolloutDivergedError, match=r"step \d+, t="):
+        RK4(max_abs=1e6).integrate(dyn, q0, v0, 0.5, 100)
+    traj = RK4(max_abs=1e6).integrate(dyn, torch.tensor([[1.0], [0.1]], dtype=torch.float64),
+                                      torch.tensor([[1e5], [0.0]], dtype=torch.float64), 0.5, 100, on_divergence="mark")
+    assert traj.diverged.tolist() == [True, False]
+    assert torch.isnan(traj.q[0, -1]).all() and torch.isfinite(traj.q[1]).all()
+
+
+def test_get_integrator_rejects_unknown_names():
+    with pytest.raises(ValueError, match="unknown integrator 'euler'"):
+        get_integrator("euler")
+    assert isinstance(get_integrator({"name": "rk4", "substeps": 2}), RK4)
+    with pytest.raises(ValueError, match="substeps"):
+        RK4(substeps=0)
+    with pytest.raises(ValueError, match="order"):
+        ImplicitMidpoint(order=3)

@@ -1,0 +1,85 @@
+"""The reduction ρ̃, velocity projection and the training losses."""
+import pytest
+import torch
+
+from lnf.model import LagrangianNeuralField
+from lnf.quadrature import midpoint_grid
+from lnf.reduction import projection_loss, reduce
+from lnf.scenes import LiftedPendulum
+
+
+def _model(latent_dim=1, seed=0):
+    torch.manual_seed(seed)
+    return LagrangianNeuralField(LiftedPendulum(), latent_dim=latent_dim, width=32, hyper_init_scale=1.0).double()
+
+
+def _safe_step(model, codes, points):
+    """α = 1/L for ℓ^r near `codes` (L = largest Hessian eigenvalue of the Gauss–Newton model)."""
+    J = model.field.jet(codes, points, order=1).J[..., 0, :]  # (B, N, d)
+    density = model.scene.inertia
+    L = (2.0 / points.shape[0]) * density * torch.linalg.eigvalsh(J.transpose(1, 2) @ J).max()
+    return 0.5 / L
+
+
+@pytest.mark.parametrize("latent_dim", [1, 2])
+def test_reduction_recovers_decoder_codes(latent_dim):
+    model = _model(latent_dim)
+    points = midpoint_grid(16, model.scene.bounds).double()
+    codes = 0.3 * torch.randn(4, latent_dim, dtype=torch.float64)
+    values = model.decode(codes, points)
+    alpha = _safe_step(model, codes, points)
+    density = model.scene.density(points)
+    # start near the answer (ρ̃ is a local method); many steps with a safe α converge to the code
+    rec = reduce(model.field, points, values, density, alpha, steps=400, codes=codes + 0.05)
+    torch.testing.assert_close(rec, codes, atol=1e-6, rtol=0)
+
+
+def test_velocity_projection_recovers_latent_velocity():
+    model = _model(2)
+    points = midpoint_grid(16, model.scene.bounds).double()
+    codes = 0.3 * torch.randn(3, 2, dtype=torch.float64)
+    v = torch.randn(3, 2, dtype=torch.float64)
+    J = model.field.jet(codes, points, order=1).J
+    velocities = torch.einsum("bnai,bi->bna", J, v)
+    torch.testing.assert_close(model.project_velocity(codes, points, velocities), v)
+    # (B, N) scalar fields are accepted too
+    torch.testing.assert_close(model.project_velocity(codes, points, velocities[..., 0]), v)
+
+
+def test_reduce_api_shapes_and_errors():
+    model = _model(1)
+    points = midpoint_grid(8, model.scene.bounds).double()
+    values = torch.randn(5, 64, 1, dtype=torch.float64)
+    assert model.reduce(points, values).shape == (5, 1)
+    assert model.reduce(points, values[..., 0]).shape == (5, 1)
+    with pytest.raises(ValueError, match="NaN or inf"):
+        model.reduce(points, values.clone().fill_(float("nan")))
+    with pytest.raises(ValueError, match="shape"):
+        model.reduce(points, torch.randn(5, 63, 1, dtype=torch.float64))
+    with pytest.raises(ValueError, match="N ≥ 1"):
+        model.reduce(points[:0], values[:, :0])
+
+
+def test_projection_loss_is_metric_norm():
+    codes = torch.tensor([[1.0, 2.0]])
+    other = torch.tensor([[0.0, 1.0]])
+    mass = torch.tensor([[[2.0, 0.5], [0.5, 1.0]]])
+    assert projection_loss(codes, other, mass).item() == pytest.approx(2.0 + 1.0 + 1.0)
+
+
+def test_losses_are_finite_and_train_both_parts():
+    model = _model(1).float()
+    points = torch.rand(6, 20, 2) * 2 - 1
+    values = torch.randn(6, 20, 1)
+    out = model.losses(points, values)
+    assert set(out) >= {"reconstruction", "projection", "loss"}
+    out["loss"].backward()
+    assert model.log_step_size.grad is not None and torch.isfinite(model.log_step_size.grad)
+    assert all(p.grad is not None for p in model.field.layers.parameters())
+
+
+@pytest.mark.parametrize("kwargs,match", [({"reduction_steps": 0}, "reduction_steps"), ({"latent_dim": 0}, "latent_dim"),
+                                          ({"step_size": 0.0}, "step_size")])
+def test_bad_model_settings(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        LagrangianNeuralField(LiftedPendulum(), **kwargs)

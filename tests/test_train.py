@@ -1,0 +1,117 @@
+"""End to end: `+experiment=pendulum` for 2 epochs on tiny data, checkpoint reload, re-evaluation, CLI."""
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+import lnf
+from helpers import TINY, compose_config
+from lnf.evaluate import evaluate
+from lnf.train import train
+
+pytestmark = pytest.mark.slow
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("run")
+    cfg = compose_config("train", ["+experiment=pendulum", "trainer=smoke", *TINY], tmp)
+    metrics = train(cfg)
+    return tmp, cfg, metrics
+
+
+def test_run_writes_metrics_checkpoint_figures_and_wandb(trained):
+    tmp, cfg, metrics = trained
+    out = Path(cfg.paths.output_dir)
+    saved = json.loads((out / "metrics.json").read_text())
+    for key in ["field_rel_l2/all/median", "field_rel_l2/in_horizon/median", "field_rel_l2/extrapolation/median",
+                "field_rel_l2/all/max", "projection_rel_l2/all/median", "latent_rmse/median", "energy_rel_err/max",
+                "energy_drift/max", "energy_drift_long/max", "vpt/median", "rollout_seconds_per_trajectory"]:
+        assert key in saved and np.isfinite(saved[key]), key
+    assert saved == pytest.approx(metrics)
+    assert (out / "checkpoints" / "last.ckpt").is_file()
+    assert len(list((out / "figures").glob("*.png"))) >= 1
+    assert list((out / "wandb").glob("offline-run-*")), "no offline wandb run"
+    run = json.loads((out / "run.json").read_text())
+    assert run["versions"]["torch"] and run["config"]["model"]["latent_dim"] == 1
+    assert not list(out.rglob("*.tmp-*"))
+
+
+def test_checkpoint_loads_without_hydra_and_gives_same_rollout(trained):
+    tmp, cfg, _ = trained
+    ckpt = Path(cfg.paths.output_dir) / "checkpoints" / "last.ckpt"
+    code = f"""
+import torch, lnf, sys
+m = lnf.load({str(ckpt)!r})
+assert 'hydra' not in sys.modules, 'lnf.load imported hydra'
+q0 = torch.tensor([[0.3], [-0.2]]); v0 = torch.tensor([[0.1], [0.4]])
+t = m.rollout(q0, v0, dt=0.05, steps=20, integrator='rk4')
+torch.save(t.q, {str(tmp / 'q.pt')!r})
+"""
+    subprocess.run([sys.executable, "-c", code], check=True, cwd=tmp)
+    model = lnf.load(ckpt)
+    q0 = torch.tensor([[0.3], [-0.2]]); v0 = torch.tensor([[0.1], [0.4]])
+    ref = model.rollout(q0, v0, dt=0.05, steps=20, integrator="rk4").q
+    torch.testing.assert_close(torch.load(tmp / "q.pt"), ref)
+    # the full Python API on arbitrary points
+    pts = torch.rand(37, 2) * 2 - 1
+    fields = model.decode(ref[:, -1], pts)
+    assert fields.shape == (2, 37, 1)
+    q = model.reduce(pts, fields)
+    assert q.shape == (2, 1)
+    v = model.project_velocity(q, pts, fields)
+    T, V = model.energy(ref, torch.zeros_like(ref))
+    assert T.shape == V.shape == (2, 21) and v.shape == (2, 1)
+
+
+def test_evaluate_entry_point_with_overrides(trained, tmp_path):
+    _, cfg, _ = trained
+    ckpt = Path(cfg.paths.output_dir) / "checkpoints" / "last.ckpt"
+    for overrides in (["integrator=rk4", "dt=0.025", "horizon=1.5", "grid.kind=random", "grid.n_points=50"],
+                      ["integrator=dopri5", "grid.kind=uniform", "grid.resolution=10", "quadrature=uniform",
+                       "quadrature.resolution=8", "long_steps=10"]):
+        ecfg = compose_config("evaluate", [f"ckpt_path={ckpt}", *overrides], tmp_path)
+        metrics = evaluate(ecfg)
+        assert np.isfinite(metrics["field_rel_l2/all/median"])
+        assert (tmp_path / "out" / "metrics.json").is_file()
+
+
+def test_evaluate_rejects_empty_grid(trained, tmp_path):
+    _, cfg, _ = trained
+    ckpt = Path(cfg.paths.output_dir) / "checkpoints" / "last.ckpt"
+    ecfg = compose_config("evaluate", [f"ckpt_path={ckpt}", "grid.kind=uniform", "grid.resolution=0"], tmp_path)
+    with pytest.raises(ValueError, match="no points"):
+        evaluate(ecfg)
+
+
+def test_load_errors(tmp_path):
+    with pytest.raises(FileNotFoundError, match="checkpoint not found"):
+        lnf.load(tmp_path / "missing.ckpt")
+    bad = tmp_path / "bad.ckpt"
+    bad.write_bytes(b"not a checkpoint")
+    with pytest.raises(ValueError, match="not a readable torch checkpoint"):
+        lnf.load(bad)
+
+
+@pytest.mark.parametrize("override,match", [("model.latent_dim=0", "latent_dim"), ("model.reduction_steps=0", "reduction_steps")])
+def test_bad_model_config_is_a_clear_error(override, match, tmp_path):
+    cfg = compose_config("train", ["+experiment=pendulum", "trainer=smoke", "logger=none", *TINY, override], tmp_path)
+    with pytest.raises(ValueError, match=match):
+        train(cfg)
+
+
+def test_cli_multirun_sweep(tmp_path):
+    """The documented sweep command, with tiny settings, through the real CLI."""
+    env = {**os.environ, "LNF_ROOT": str(tmp_path), "WANDB_MODE": "offline"}
+    cmd = [sys.executable, "-m", "lnf.train", "-m", "+experiment=pendulum", "integrator=rk4,implicit_midpoint",
+           "model.latent_dim=1,2", "trainer=smoke", "logger=csv", "trainer.max_epochs=1", *TINY]
+    proc = subprocess.run(cmd, cwd=Path(__file__).resolve().parents[1], env=env, capture_output=True, text=True,
+                          timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    runs = sorted(tmp_path.glob("outputs/pendulum/multiruns/*/*/metrics.json"))
+    assert len(runs) == 4
