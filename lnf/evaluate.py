@@ -81,11 +81,13 @@ def evaluate(cfg: DictConfig) -> dict[str, float]:
     result = evaluate_rollouts(model, states, times, points, train_horizon,
                                true_fields=split.fields[:n] if use_stored else None,
                                true_velocities=split.velocities[:n] if use_stored else None,
-                               integrator=integrator, quadrature=quadrature)
+                               integrator=integrator, quadrature=quadrature, grid_shape=grid_shape,
+                               max_reduction_points=cfg.max_reduction_points)
     metrics = dict(result.metrics)
     if int(cfg.long_steps) > 0:
         metrics.update(long_horizon_energy(model, states[: int(cfg.long_trajectories), 0], points, dt,
-                                           int(cfg.long_steps), integrator=integrator, quadrature=quadrature))
+                                           int(cfg.long_steps), integrator=integrator, quadrature=quadrature,
+                                           grid_shape=grid_shape, max_reduction_points=cfg.max_reduction_points))
     metrics["evaluation_seconds"] = time.perf_counter() - start
     write_json_atomic(output_dir / "metrics.json", metrics)
     write_json_atomic(output_dir / "run.json", run_metadata(cfg))

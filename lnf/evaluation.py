@@ -34,6 +34,21 @@ class RolloutEvaluation:
     points: Optional[np.ndarray] = None  # (N, dim_B)
 
 
+def reduction_subset(n_points: int, grid_shape: Optional[tuple[int, ...]], max_points: Optional[int]) -> np.ndarray:
+    """Indices of the evaluation points that ρ̃ uses: all, or an evenly strided subset of ≤ max_points.
+
+    On a row-major grid the stride is the same along every axis (64×64 → every 2nd point → 32×32);
+    on scattered points it is every k-th point.
+    """
+    if not max_points or n_points <= max_points:
+        return np.arange(n_points)
+    if grid_shape is not None and int(np.prod(grid_shape)) == n_points:
+        stride = int(np.ceil((n_points / max_points) ** (1.0 / len(grid_shape))))
+        idx = np.arange(n_points).reshape(grid_shape)[tuple(slice(None, None, stride) for _ in grid_shape)]
+        return idx.reshape(-1)
+    return np.arange(0, n_points, int(np.ceil(n_points / max_points)))
+
+
 def _chunked(fn, x: Tensor, chunk: int) -> Tensor:
     return torch.cat([fn(x[i:i + chunk]) for i in range(0, x.shape[0], chunk)], dim=0)
 
@@ -50,11 +65,15 @@ def evaluate_rollouts(
     integrator: "str | Integrator | dict" = "implicit_midpoint",
     quadrature: "Quadrature | QuadratureRule | None" = None,
     snapshot_chunk: int = 32,
+    grid_shape: Optional[tuple[int, ...]] = None,
+    max_reduction_points: Optional[int] = 1024,
 ) -> RolloutEvaluation:
     """Roll out every trajectory of full-order `states` (n, T, S) sampled at `times` (T,) [s].
 
     `points` (N, dim_B) are the evaluation points (equal quadrature weights |B|/N); the true fields there
-    come from `true_fields`/`true_velocities` (n, T, N, A) when given, else from the scene.
+    come from `true_fields`/`true_velocities` (n, T, N, A) when given, else from the scene. Decoding and
+    errors use all N points; ρ̃ (initial conditions and the projected reference q̃_ref) uses an evenly
+    strided subset of at most `max_reduction_points` of them (see :func:`reduction_subset`).
     """
     if points.ndim != 2 or points.shape[0] == 0:
         raise ValueError(f"evaluation grid has no points: expected shape (N ≥ 1, dim_B), got {points.shape}")
@@ -65,11 +84,13 @@ def evaluate_rollouts(
     n, T = states.shape[:2]
     dt = float(times[1] - times[0])
     pts = torch.as_tensor(points, dtype=p.dtype, device=p.device)
-    fields_t = torch.as_tensor(true_fields, dtype=p.dtype, device=p.device)
-    vel0 = torch.as_tensor(true_velocities[:, 0], dtype=p.dtype, device=p.device)
+    sub = torch.as_tensor(reduction_subset(len(points), grid_shape, max_reduction_points), device=p.device)
+    pts_r = pts[sub]
+    fields_r = torch.as_tensor(np.asarray(true_fields)[:, :, sub.cpu().numpy()], dtype=p.dtype, device=p.device)
+    vel0 = torch.as_tensor(np.asarray(true_velocities)[:, 0, sub.cpu().numpy()], dtype=p.dtype, device=p.device)
 
-    q0 = model.reduce(pts, fields_t[:, 0])
-    v0 = model.project_velocity(q0, pts, vel0)
+    q0 = model.reduce(pts_r, fields_r[:, 0])
+    v0 = model.project_velocity(q0, pts_r, vel0)
     integ = get_integrator(integrator)
     start = time.perf_counter()
     traj = model.rollout(q0, v0, dt=dt, steps=T - 1, integrator=integ, quadrature=quadrature, on_divergence="mark")
@@ -81,8 +102,8 @@ def evaluate_rollouts(
     safe_q = torch.where(finite[:, None], flat_q, torch.zeros_like(flat_q))
     pred = _chunked(lambda c: model.decode(c, pts), safe_q, snapshot_chunk)
     pred = torch.where(finite[:, None, None], pred, float("nan")).reshape(n, T, *pred.shape[1:])
-    flat_fields = fields_t.reshape(n * T, *fields_t.shape[2:])
-    q_ref = _chunked(lambda f: model.reduce(pts, f), flat_fields, snapshot_chunk)
+    flat_fields = fields_r.reshape(n * T, *fields_r.shape[2:])
+    q_ref = _chunked(lambda f: model.reduce(pts_r, f), flat_fields, snapshot_chunk)
     proj = _chunked(lambda c: model.decode(c, pts), q_ref, snapshot_chunk).reshape(n, T, *pred.shape[2:])
 
     kin, pot = model.energy(torch.where(finite[:, None], flat_q, 0.0),
@@ -127,10 +148,13 @@ def long_horizon_energy(
     integrator: "str | Integrator | dict" = "implicit_midpoint",
     quadrature: "Quadrature | QuadratureRule | None" = None,
     record_every: int = 10,
+    grid_shape: Optional[tuple[int, ...]] = None,
+    max_reduction_points: Optional[int] = 1024,
 ) -> dict[str, float]:
     """energy_drift = max_t |Ẽ(t) − Ẽ(0)| / E_scale over a `steps`-step rollout from full-order states (n, S)."""
     scene = model.scene
     p = next(model.parameters())
+    points = np.asarray(points)[reduction_subset(len(points), grid_shape, max_reduction_points)]
     q_true, v_true = scene.fields(states0[:, None], points)
     pts = torch.as_tensor(points, dtype=p.dtype, device=p.device)
     q0 = model.reduce(pts, torch.as_tensor(q_true[:, 0], dtype=p.dtype, device=p.device))

@@ -88,7 +88,11 @@ class LagrangianNeuralField(nn.Module):
         width, depth, w0, hyper_width, hyper_depth, hyper_init_scale: see :class:`ModulatedSiren`.
         reduction_steps: K ≥ 1.
         step_size: initial α of the reduction (learned as log α).
-        quadrature: rule for the integrals of the reduced dynamics.
+        velocity_weight: λ_v of the optional tangent (velocity) reconstruction loss, not in the paper;
+            0 gives the paper's loss ℓ^r + ℓ^p exactly (see :meth:`losses`).
+        quadrature: rule for the integrals of the reduced dynamics (default Gauss–Legendre 12×12).
+
+    Defaults are those of ``conf/model/lnf.yaml``; w0 = 10 rather than the paper's 30 (see the README).
     """
 
     def __init__(
@@ -97,12 +101,13 @@ class LagrangianNeuralField(nn.Module):
         latent_dim: int = 1,
         width: int = 256,
         depth: int = 2,
-        w0: float = 30.0,
+        w0: float = 10.0,
         hyper_width: int = 128,
         hyper_depth: int = 0,
         hyper_init_scale: float = 0.1,
         reduction_steps: int = 3,
         step_size: float = 0.1,
+        velocity_weight: float = 0.0,
         quadrature: Optional[QuadratureRule] = None,
     ) -> None:
         super().__init__()
@@ -110,13 +115,16 @@ class LagrangianNeuralField(nn.Module):
             raise ValueError(f"model.reduction_steps (K) must be an integer ≥ 1, got {reduction_steps!r}")
         if not step_size > 0:
             raise ValueError(f"model.step_size (α0) must be > 0, got {step_size!r}")
+        if not velocity_weight >= 0:
+            raise ValueError(f"model.velocity_weight must be ≥ 0, got {velocity_weight!r}")
+        self.velocity_weight = float(velocity_weight)
         self.scene = scene
         self.field = ModulatedSiren(latent_dim=latent_dim, in_dim=scene.body_dim, out_dim=scene.field_dim,
                                     width=width, depth=depth, w0=w0, hyper_width=hyper_width,
                                     hyper_depth=hyper_depth, hyper_init_scale=hyper_init_scale)
         self.reduction_steps = int(reduction_steps)
         self.log_step_size = nn.Parameter(torch.tensor(math.log(step_size)))
-        self.quadrature_rule = quadrature if quadrature is not None else GaussLegendre(8)
+        self.quadrature_rule = quadrature if quadrature is not None else GaussLegendre(12)
         self.checkpoint: dict[str, Any] = {}
 
     @property
@@ -174,20 +182,37 @@ class LagrangianNeuralField(nn.Module):
             raise ValueError(f"{what} contain NaN or inf")
 
     # ------------------------------------------------------------------ training losses (DESIGN.md §2)
-    def losses(self, points: Tensor, values: Tensor) -> dict[str, Tensor]:
-        """Reconstruction + projection loss of snapshots (B, N, A) observed at points (B, N, dim_B)."""
+    def losses(self, points: Tensor, values: Tensor, velocities: Optional[Tensor] = None) -> dict[str, Tensor]:
+        """Training losses of snapshots (B, N, A) observed at points (B, N, dim_B) (DESIGN.md §2).
+
+        ``loss = ℓ^r + ℓ^p`` (+ λ_v ℓ^v when ``velocity_weight`` > 0 and `velocities` (B, N, A) are given),
+        with the optional tangent reconstruction loss ℓ^v = (1/|X|) Σ_j ω0 ‖J q̃̇ − q̇_j‖², q̃̇ the
+        ω0-projection of the observed velocity onto the tangent space span J (the lifted reduction
+        dρ = (dφ)^{†,ω0} of the paper's eq. 14). ℓ^v is the part of the observed velocity that the
+        embedding's tangent space misses; ℓ^r and ℓ^p do not constrain it.
+        """
         density = self._density(points)
         K = self.reduction_steps
         codes = reduce(self.field, points, values, density, self.step_size, K)
         jet = self.field.jet(codes, points, order=1)
         rec = reconstruction_loss(jet.value, values, density)
-        weights = density / points.shape[-2]  # Monte-Carlo weights of the observed points (× |B| below)
         volume = math.prod(hi - lo for lo, hi in self.scene.bounds)
-        mass = pullback_mass_matrix(jet.J, volume * weights)
+        weights = volume * density / points.shape[-2]  # Monte-Carlo quadrature of the observed points
+        mass = pullback_mass_matrix(jet.J, weights)
         reprojected = reduce(self.field, points, jet.value, density, self.step_size, K)
         proj = projection_loss(codes, reprojected, mass)
-        return {"reconstruction": rec.mean(), "projection": proj.mean(), "loss": (rec + proj).mean(),
-                "codes": codes.detach()}
+        total = rec + proj
+        out = {"reconstruction": rec.mean(), "projection": proj.mean()}
+        if self.velocity_weight > 0 and velocities is not None:
+            rhs = torch.einsum("bn,bnai,bna->bi", weights, jet.J, velocities)
+            code_velocity = torch.linalg.solve(mass, rhs)
+            tangent = torch.einsum("bnai,bi->bna", jet.J, code_velocity)
+            vel = reconstruction_loss(tangent, velocities, density)
+            total = total + self.velocity_weight * vel
+            out["velocity"] = vel.mean()
+        out["loss"] = total.mean()
+        out["codes"] = codes.detach()
+        return out
 
     # ------------------------------------------------------------------ reduced dynamics
     def dynamics(self, quadrature: "Quadrature | QuadratureRule | None" = None) -> ReducedDynamics:

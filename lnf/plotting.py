@@ -230,7 +230,8 @@ def _draw_latent_energy(
     ax_q.set_xlabel("t [s]")
     ax_q.set_ylabel("q̃")
     ax_q.set_title("latent coordinates")
-    ax_q.legend(handles=handles, fontsize="small", loc="best", ncol=1 if d <= 2 else 2)
+    ax_q.legend(handles=handles, fontsize="small", loc="upper center", bbox_to_anchor=(0.5, -0.17),
+                ncol=min(len(handles), 3), frameon=False)
     ax_q.grid(alpha=0.3)
 
     # right: energies
@@ -251,7 +252,8 @@ def _draw_latent_energy(
     ax_e.set_xlabel("t [s]")
     ax_e.set_ylabel("energy [J]")
     ax_e.set_title("kinetic and potential energy")
-    ax_e.legend(handles=e_handles, fontsize="small", loc="best")
+    ax_e.legend(handles=e_handles, fontsize="small", loc="upper center", bbox_to_anchor=(0.5, -0.17),
+                ncol=3, frameon=False)
     ax_e.grid(alpha=0.3)
 
     for ax in (ax_q, ax_e):
@@ -298,6 +300,11 @@ def _draw_fields(
                 im = ax.imshow(img, origin="lower", extent=extent, cmap=cmap_e, vmin=0.0, vmax=emax,
                                interpolation="nearest", aspect="equal")
                 im_e = im
+            n_bad = int(np.count_nonzero(np.ma.getmaskarray(img)))
+            if n_bad:
+                ax.text(0.5, 0.5, f"non-finite\n{100.0 * n_bad / img.size:.0f}% (grey)",
+                        transform=ax.transAxes, ha="center", va="center", fontsize="x-small",
+                        bbox=dict(boxstyle="round", facecolor="white", alpha=0.8, linewidth=0))
             ax.tick_params(labelsize="x-small")
             if s == 0:
                 ax.set_ylabel(f"{row_names[r]}\ny", fontsize="small")

@@ -117,10 +117,12 @@ class ModulatedSiren(nn.Module):
 
     # ------------------------------------------------------------------ Taylor propagation helpers
     @staticmethod
-    def _linear(x: _Taylor, layer: nn.Linear, bias: bool = True) -> _Taylor:
-        v = torch.nn.functional.linear(x.v, layer.weight, layer.bias if bias else None)
-        d1 = None if x.d1 is None else x.d1 @ layer.weight.T
-        d2 = None if x.d2 is None else x.d2 @ layer.weight.T
+    def _linear(x: _Taylor, layer: nn.Linear, weight: Optional[Tensor] = None, bias: Optional[Tensor] = None) -> _Taylor:
+        weight = layer.weight if weight is None else weight
+        bias = layer.bias if bias is None else bias
+        v = torch.nn.functional.linear(x.v, weight, bias)
+        d1 = None if x.d1 is None else x.d1 @ weight.T
+        d2 = None if x.d2 is None else x.d2 @ weight.T
         return _Taylor(v, d1, d2)
 
     @staticmethod
@@ -185,17 +187,21 @@ class ModulatedSiren(nn.Module):
         right = torch.tensor([p[1] for p in pairs], device=codes.device, dtype=torch.long)
         n_pairs = len(pairs)
 
+        # w0 multiplies every pre-activation: fold it into the (small) shifts, weights and biases once
+        w0 = self.w0
         hyp = self._hyper_jet(codes, min(order, 2))
-        s = hyp.v.view(B, L, W)
-        ds = None if hyp.d1 is None else hyp.d1.view(B, d, L, W)
-        dds = None if hyp.d2 is None else hyp.d2.view(B, -1, L, W)
+        s = w0 * hyp.v.view(B, L, W)
+        ds = None if hyp.d1 is None else w0 * hyp.d1.view(B, d, L, W)
+        dds = None if hyp.d2 is None else w0 * hyp.d2.view(B, -1, L, W)
+        trivial_pairs = n_pairs == 1 and n_dirs == 1  # d = 1 without X-derivatives: no gather needed
 
         if points.ndim == 2:
             points = points.unsqueeze(0)
         x = _Taylor(points, None, None)
         for l, layer in enumerate(self.layers):
+            weight, bias = w0 * layer.weight, w0 * layer.bias
             if l == 0:
-                v = torch.nn.functional.linear(points, layer.weight, layer.bias) + s[:, None, 0]
+                v = torch.nn.functional.linear(points, weight, bias) + s[:, None, 0]
                 N = v.shape[1]
                 d1 = d2 = None
                 if n_dirs:  # first layer: ∂z/∂q̃_i = ∂s_0/∂q̃_i and ∂z/∂X_k = W_0[:, k], both constant in X
@@ -203,7 +209,7 @@ class ModulatedSiren(nn.Module):
                     if n_lat:
                         parts.append(ds[:, :, 0, None, :].expand(B, n_lat, N, W))
                     if n_sp:
-                        parts.append(layer.weight.T[None, :, None, :].expand(B, nb, N, W))
+                        parts.append(weight.T[None, :, None, :].expand(B, nb, N, W))
                     d1 = torch.cat(parts, dim=1) if len(parts) > 1 else parts[0]
                 if n_pairs:  # latent×latent from the hypernetwork; spatial×latent vanish (z is affine in X)
                     parts = []
@@ -214,7 +220,7 @@ class ModulatedSiren(nn.Module):
                     d2 = torch.cat(parts, dim=1) if len(parts) > 1 else parts[0]
                 z = _Taylor(v, d1, d2)
             else:
-                z = self._linear(x, layer)
+                z = self._linear(x, layer, weight=weight, bias=bias)
                 z.v = z.v + s[:, None, l]
                 if n_lat:
                     shift_d1 = ds[:, :, l, None, :]
@@ -222,11 +228,14 @@ class ModulatedSiren(nn.Module):
                 if n_ll:
                     shift_d2 = dds[:, :, l, None, :]
                     z.d2 = torch.cat([z.d2[:, :n_ll] + shift_d2, z.d2[:, n_ll:]], dim=1) if n_pairs > n_ll else z.d2 + shift_d2
-            w0 = self.w0
-            a = w0 * z.v
-            sin_a, cos_a = torch.sin(a), torch.cos(a)
-            z = _Taylor(a, None if z.d1 is None else w0 * z.d1, None if z.d2 is None else w0 * z.d2)
-            x = self._activate(z, sin_a, cos_a, -sin_a, left, right)
+            sin_z, cos_z = torch.sin(z.v), torch.cos(z.v)
+            c = cos_z.unsqueeze(1)
+            d1 = None if z.d1 is None else c * z.d1
+            d2 = None
+            if z.d2 is not None:  # (sin)'' = −sin: d2 = cos·z'' − sin·z'_i z'_j
+                prod = z.d1 * z.d1 if trivial_pairs else z.d1[:, left] * z.d1[:, right]
+                d2 = torch.addcmul(c * z.d2, sin_z.unsqueeze(1), prod, value=-1.0)
+            x = _Taylor(sin_z, d1, d2)
         y = self._linear(x, self.out)
 
         out = FieldJet(value=y.v)

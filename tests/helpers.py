@@ -14,7 +14,7 @@ TINY = ["data.n_train=3", "data.n_val=1", "data.n_test=2", "data.n_times=20", "d
         "data.fine_resolution=12", "data.coarse_resolution=8", "data.batch_size=8", "model.width=16",
         "model.hyper_width=8", "evaluation.long_steps=20", "evaluation.long_trajectories=1",
         "evaluation.every_n_epochs=1", "evaluation.val_trajectories=1", "evaluation.val_resolution=8",
-        "evaluation.figures=1", "quadrature.order=4"]
+        "evaluation.figures=1", "evaluation.max_reduction_points=64", "quadrature.order=4"]
 
 
 def compose_config(name: str, overrides: list[str], tmp_path: Path) -> DictConfig:

@@ -83,3 +83,21 @@ def test_losses_are_finite_and_train_both_parts():
 def test_bad_model_settings(kwargs, match):
     with pytest.raises(ValueError, match=match):
         LagrangianNeuralField(LiftedPendulum(), **kwargs)
+
+
+def test_velocity_loss_measures_velocity_outside_tangent_space():
+    model = LagrangianNeuralField(LiftedPendulum(), latent_dim=1, width=32, velocity_weight=1.0).double()
+    points = (torch.rand(3, 40, 2, dtype=torch.float64) * 2 - 1)
+    values = model.decode(0.2 * torch.randn(3, 1, dtype=torch.float64), points)
+    codes = reduce(model.field, points, values, model.scene.density(points), model.step_size, model.reduction_steps)
+    J = model.field.jet(codes, points, order=1).J
+    inside = torch.einsum("bnai,bi->bna", J, torch.randn(3, 1, dtype=torch.float64))
+    assert model.losses(points, values, inside)["velocity"].item() < 1e-20
+    outside = inside + torch.randn_like(inside)
+    out = model.losses(points, values, outside)
+    assert out["velocity"].item() > 1e-3
+    assert out["loss"].item() == pytest.approx(
+        (out["reconstruction"] + out["projection"] + out["velocity"]).item(), rel=1e-6)
+    # weight 0 is the paper's loss: velocities are ignored
+    model.velocity_weight = 0.0
+    assert "velocity" not in model.losses(points, values, outside)

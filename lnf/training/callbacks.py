@@ -64,18 +64,21 @@ class RolloutEvaluationCallback(pl.Callback):
         val_resolution: evaluation grid per axis during validation.
         long_steps, long_trajectories, long_dt: the long-horizon energy check at test (0 steps disables).
         figures: how many test trajectories get a Figure 3.
+        max_reduction_points: ρ̃ of the true fields uses an evenly strided subset of at most this many
+            evaluation points (decoding and errors use all of them).
     """
 
     def __init__(self, integrator: "Integrator | dict | str" = "implicit_midpoint", output_dir: str = ".",
                  every_n_epochs: int = 5, val_trajectories: int = 4, val_resolution: int = 32,
                  long_steps: int = 10000, long_trajectories: int = 4, long_dt: float = 0.05,
-                 figures: int = 2) -> None:
+                 figures: int = 2, max_reduction_points: Optional[int] = 1024) -> None:
         super().__init__()
         self.integrator = get_integrator(integrator)
         self.output_dir = Path(output_dir)
         self.every_n_epochs, self.val_trajectories, self.val_resolution = every_n_epochs, val_trajectories, val_resolution
         self.long_steps, self.long_trajectories, self.long_dt = long_steps, long_trajectories, long_dt
         self.figures = figures
+        self.max_reduction_points = max_reduction_points
         self.test_metrics: dict[str, float] = {}
         self._val_count = 0
 
@@ -105,22 +108,24 @@ class RolloutEvaluationCallback(pl.Callback):
         split = trainer.datamodule.split("test")
         horizon = self._train_horizon(split)
         start = time.perf_counter()
+        res = int(round(len(split.fine_points) ** (1 / model.scene.body_dim)))
+        grid_shape = (res,) * model.scene.body_dim
         with torch.inference_mode(False), torch.no_grad():
             result = evaluate_rollouts(model, split.states, split.times, split.fine_points, horizon,
                                        true_fields=split.fields, true_velocities=split.velocities,
-                                       integrator=self.integrator)
+                                       integrator=self.integrator, grid_shape=grid_shape,
+                                       max_reduction_points=self.max_reduction_points)
             metrics = dict(result.metrics)
             if self.long_steps > 0:
                 n = min(self.long_trajectories, len(split))
                 metrics.update(long_horizon_energy(model, split.states[:n, 0], split.fine_points, self.long_dt,
-                                                   self.long_steps, integrator=self.integrator))
+                                                   self.long_steps, integrator=self.integrator, grid_shape=grid_shape,
+                                                   max_reduction_points=self.max_reduction_points))
         metrics["evaluation_seconds"] = time.perf_counter() - start
         self.test_metrics = metrics
         if trainer.is_global_zero:
             for key, value in metrics.items():
                 pl_module.log(f"test/{key}", float(value), rank_zero_only=True)
-            res = int(round(len(split.fine_points) ** (1 / model.scene.body_dim)))
-            grid_shape = (res,) * model.scene.body_dim
             paths = save_evaluation_figures(result, model.scene, grid_shape, horizon, self.output_dir / "figures",
                                             "test", self.figures)
             self._log_images(trainer, paths)

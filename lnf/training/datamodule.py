@@ -22,13 +22,16 @@ log = logging.getLogger("lnf.data")
 class SnapshotDataset(Dataset):
     """Snapshots (trajectory i, time k < max_time) of each trajectory's own masked coarse observations.
 
-    Item: points (Nobs, dim_B) float32 and values (Nobs, A) float32.
+    Item: points (Nobs, dim_B), values (Nobs, A) and velocities (Nobs, A), float32.
     """
 
     def __init__(self, split: TrajectorySplit, max_time: int) -> None:
         points, values = split.observed(max_time)
         self.points = torch.as_tensor(points, dtype=torch.float32)  # (n, Nobs, dim_B)
         self.values = torch.as_tensor(values, dtype=torch.float32)  # (n, T', Nobs, A)
+        masks = torch.as_tensor(split.masks)
+        vel = torch.as_tensor(split.coarse_velocities[:, :max_time], dtype=torch.float32)
+        self.velocities = torch.stack([vel[i][:, masks[i]] for i in range(len(masks))])  # (n, T', Nobs, A)
         self.n_times = self.values.shape[1]
 
     def __len__(self) -> int:
@@ -36,7 +39,7 @@ class SnapshotDataset(Dataset):
 
     def __getitem__(self, index: int) -> tuple[torch.Tensor, torch.Tensor]:
         i, k = divmod(int(index), self.n_times)
-        return self.points[i], self.values[i, k]
+        return self.points[i], self.values[i, k], self.velocities[i, k]
 
 
 def default_path(data_dir: str | Path, scene: Scene, cfg: DatasetConfig) -> Path:

@@ -32,19 +32,21 @@ class LNFModule(pl.LightningModule):
         self.optimizer_cfg = {"lr": 3e-4, "step_size_lr": 1e-2, "weight_decay": 0.0, "warmup_steps": 0,
                               "schedule": "cosine", "min_lr_ratio": 0.0, **(optimizer or {})}
 
-    def _step(self, batch: tuple[Tensor, Tensor], stage: str) -> Tensor:
-        points, values = batch
-        out = self.model.losses(points, values)
+    def _step(self, batch: tuple[Tensor, ...], stage: str) -> Tensor:
+        points, values, velocities = batch
+        out = self.model.losses(points, values, velocities)
         bs = points.shape[0]
         on_step = stage == "train"
         self.log(f"{stage}/loss", out["loss"], prog_bar=True, batch_size=bs, on_step=on_step, on_epoch=True)
         self.log(f"{stage}/reconstruction", out["reconstruction"], batch_size=bs, on_step=on_step, on_epoch=True)
         self.log(f"{stage}/projection", out["projection"], batch_size=bs, on_step=on_step, on_epoch=True)
+        if "velocity" in out:
+            self.log(f"{stage}/velocity", out["velocity"], batch_size=bs, on_step=on_step, on_epoch=True)
         if stage == "train":
             self.log("train/step_size", self.model.step_size.detach(), batch_size=bs, on_step=True, on_epoch=False)
         return out["loss"]
 
-    def training_step(self, batch: tuple[Tensor, Tensor], batch_idx: int) -> Tensor:
+    def training_step(self, batch: tuple[Tensor, ...], batch_idx: int) -> Tensor:
         loss = self._step(batch, "train")
         if not torch.isfinite(loss):
             raise FloatingPointError(
@@ -52,10 +54,10 @@ class LNFModule(pl.LightningModule):
                 f"(now {self.optimizer_cfg['lr']}) or model.step_size")
         return loss
 
-    def validation_step(self, batch: tuple[Tensor, Tensor], batch_idx: int) -> Tensor:
+    def validation_step(self, batch: tuple[Tensor, ...], batch_idx: int) -> Tensor:
         return self._step(batch, "val")
 
-    def test_step(self, batch: tuple[Tensor, Tensor], batch_idx: int) -> Tensor:
+    def test_step(self, batch: tuple[Tensor, ...], batch_idx: int) -> Tensor:
         return self._step(batch, "test")
 
     def configure_optimizers(self) -> dict[str, Any]:
