@@ -51,21 +51,37 @@ class ReducedDynamics:
         self.potential_fn = scene.potential(quadrature)
         self.forcing = forcing
 
-    def terms(self, q: Tensor, v: Tensor) -> DynamicsTerms:
-        spatial = self.potential_fn.needs_gradient
-        jet = self.jet(q, self.points, order=2, spatial=spatial)
-        J, H, ww = jet.J, jet.H, self.density_weights.to(q)
-        Jv = torch.einsum("bnai,bi->bna", J, v)
-        Hv = torch.einsum("bnaij,bj->bnai", H, v)  # (B, N, A, d)
-        mass = torch.einsum("n,bnai,bnaj->bij", ww, J, J)
-        coriolis = torch.einsum("n,bnai,bnaj,bj->bi", ww, J, Hv, v)  # Σ w ω0 J_iᵀ H[v, v]
-        kinetic_gradient = torch.einsum("n,bna,bnak->bk", ww, Jv, Hv)  # ∂/∂q̃ ½ q̃̇ᵀ M̃ q̃̇
+    # -- pieces shared by the Lagrangian and Hamiltonian forms -------------------------------------
+    def _jet(self, q: Tensor, order: int) -> FieldJet:
+        return self.jet(q, self.points, order=order, spatial=self.potential_fn.needs_gradient)
+
+    def _mass(self, J: Tensor) -> Tensor:
+        """M̃ = Σ_j w_j ω0_j J_jᵀ J_j (B, d, d)."""
+        return torch.einsum("n,bnai,bnaj->bij", self.density_weights.to(J), J, J)
+
+    def _gravity(self, jet: FieldJet) -> Tensor:
+        """g̃ = ∂Ṽ/∂q̃ = Σ_j (∂V/∂q_j) J_j + (∂V/∂G_j) : ∂G_j/∂q̃ (eq. 11) (B, d)."""
         dVdq, dVdG = self.potential_fn.gradient(jet.value, jet.G)
-        gravity = torch.einsum("bna,bnai->bi", dVdq, J)
+        gravity = torch.einsum("bna,bnai->bi", dVdq, jet.J)
         if dVdG is not None:
             gravity = gravity + torch.einsum("bnak,bnaki->bi", dVdG, jet.GJ)
+        return gravity
+
+    def _velocity_contractions(self, jet: FieldJet, v: Tensor) -> tuple[Tensor, Tensor]:
+        """(∂T̃/∂q̃ at fixed q̃̇, c̃ = Σ w ω0 Jᵀ H[q̃̇, q̃̇]), each (B, d)."""
+        ww = self.density_weights.to(v)
+        Jv = torch.einsum("bnai,bi->bna", jet.J, v)
+        Hv = torch.einsum("bnaij,bj->bnai", jet.H, v)  # (B, N, A, d)
+        kinetic_gradient = torch.einsum("n,bna,bnak->bk", ww, Jv, Hv)
+        coriolis = torch.einsum("n,bnai,bnaj,bj->bi", ww, jet.J, Hv, v)
+        return kinetic_gradient, coriolis
+
+    # -- public ------------------------------------------------------------------------------------
+    def terms(self, q: Tensor, v: Tensor) -> DynamicsTerms:
+        jet = self._jet(q, order=2)
+        kinetic_gradient, coriolis = self._velocity_contractions(jet, v)
         potential = self.potential_fn(jet.value, jet.G)
-        return DynamicsTerms(mass, coriolis, gravity, potential, kinetic_gradient)
+        return DynamicsTerms(self._mass(jet.J), coriolis, self._gravity(jet), potential, kinetic_gradient)
 
     def acceleration(self, q: Tensor, v: Tensor, t: float = 0.0) -> Tensor:
         """q̃̈ = M̃⁻¹ (−c̃ − g̃ + τ) (B, d)."""
@@ -77,37 +93,26 @@ class ReducedDynamics:
 
     def hamiltonian_derivatives(self, q: Tensor, p: Tensor, t: float = 0.0) -> tuple[Tensor, Tensor]:
         """(∂H/∂p̃ = q̃̇, −∂H/∂q̃ + τ) at (q̃, p̃) for H = ½ p̃ᵀM̃⁻¹p̃ + Ṽ, from one jet evaluation."""
-        spatial = self.potential_fn.needs_gradient
-        jet = self.jet(q, self.points, order=2, spatial=spatial)
-        J, H, ww = jet.J, jet.H, self.density_weights.to(q)
-        mass = torch.einsum("n,bnai,bnaj->bij", ww, J, J)
-        v = torch.linalg.solve(mass, p)
-        Jv = torch.einsum("bnai,bi->bna", J, v)
-        Hv = torch.einsum("bnaij,bj->bnai", H, v)
-        kinetic_gradient = torch.einsum("n,bna,bnak->bk", ww, Jv, Hv)
-        dVdq, dVdG = self.potential_fn.gradient(jet.value, jet.G)
-        gravity = torch.einsum("bna,bnai->bi", dVdq, J)
-        if dVdG is not None:
-            gravity = gravity + torch.einsum("bnak,bnaki->bi", dVdG, jet.GJ)
-        force = kinetic_gradient - gravity
+        jet = self._jet(q, order=2)
+        v = torch.linalg.solve(self._mass(jet.J), p)
+        kinetic_gradient, _ = self._velocity_contractions(jet, v)
+        force = kinetic_gradient - self._gravity(jet)
         if self.forcing is not None:
             force = force + self.forcing(t, q, v)
         return v, force
 
     def mass_matrix(self, q: Tensor) -> Tensor:
-        J = self.jet(q, self.points, order=1).J
-        return torch.einsum("n,bnai,bnaj->bij", self.density_weights.to(q), J, J)
+        return self._mass(self.jet(q, self.points, order=1).J)
 
     def potential_energy(self, q: Tensor) -> Tensor:
-        jet = self.jet(q, self.points, order=0, spatial=self.potential_fn.needs_gradient)
+        jet = self._jet(q, order=0)
         return self.potential_fn(jet.value, jet.G)
 
     def energies(self, q: Tensor, v: Tensor) -> tuple[Tensor, Tensor]:
         """(T̃, Ṽ), each (...,) for q̃, q̃̇ (..., d)."""
         shape = q.shape[:-1]
         q2, v2 = q.reshape(-1, q.shape[-1]), v.reshape(-1, v.shape[-1])
-        spatial = self.potential_fn.needs_gradient
-        jet = self.jet(q2, self.points, order=1, spatial=spatial)
+        jet = self._jet(q2, order=1)
         Jv = torch.einsum("bnai,bi->bna", jet.J, v2)
         kinetic = 0.5 * torch.einsum("n,bna,bna->b", self.density_weights.to(q), Jv, Jv)
         potential = self.potential_fn(jet.value, jet.G)

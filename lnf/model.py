@@ -22,7 +22,8 @@ from torch import Tensor, nn
 from lnf.dynamics import ReducedDynamics
 from lnf.integrators import Integrator, Trajectory, get_integrator
 from lnf.quadrature import GaussLegendre, Quadrature, QuadratureRule
-from lnf.reduction import pullback_mass_matrix, projection_loss, reconstruction_loss, reduce
+from lnf.reduction import (project_velocity, projection_loss, pullback_mass_matrix, reconstruction_loss,
+                           reduce)
 from lnf.scenes.base import Scene
 from lnf.siren import ModulatedSiren
 
@@ -167,10 +168,7 @@ class LagrangianNeuralField(nn.Module):
         if weights is None:
             weights = points.new_full(points.shape[:-1], 1.0 / points.shape[-2])
         ww = weights.to(velocities) * self._density(points)
-        J = self.field.jet(codes, points, order=1).J
-        M = pullback_mass_matrix(J, ww)
-        rhs = torch.einsum("bn,bnai,bna->bi", ww.expand(J.shape[:2]), J, velocities)
-        return torch.linalg.solve(M, rhs)
+        return project_velocity(self.field.jet(codes, points, order=1).J, ww, velocities)
 
     def _check_observation(self, points: Tensor, values: Tensor, what: str) -> None:
         if points.shape[-1] != self.scene.body_dim or points.shape[-2] == 0:
@@ -204,8 +202,7 @@ class LagrangianNeuralField(nn.Module):
         total = rec + proj
         out = {"reconstruction": rec.mean(), "projection": proj.mean()}
         if self.velocity_weight > 0 and velocities is not None:
-            rhs = torch.einsum("bn,bnai,bna->bi", weights, jet.J, velocities)
-            code_velocity = torch.linalg.solve(mass, rhs)
+            code_velocity = project_velocity(jet.J, weights, velocities)
             tangent = torch.einsum("bnai,bi->bna", jet.J, code_velocity)
             vel = reconstruction_loss(tangent, velocities, density)
             total = total + self.velocity_weight * vel
