@@ -115,3 +115,16 @@ def test_cli_multirun_sweep(tmp_path):
     assert proc.returncode == 0, proc.stderr[-3000:]
     runs = sorted(tmp_path.glob("outputs/pendulum/multiruns/*/*/metrics.json"))
     assert len(runs) == 4
+
+
+def test_readme_python_example_runs(trained):
+    """The README's Python API example, run as written against a trained checkpoint."""
+    _, cfg, _ = trained
+    ckpt = Path(cfg.paths.output_dir) / "checkpoints" / "last.ckpt"
+    text = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    block = text.split("## Using a trained model from Python")[1].split("```python")[1].split("```")[0]
+    assert '"outputs/pendulum/runs/<date>/checkpoints/last.ckpt"' in block
+    block = block.replace('"outputs/pendulum/runs/<date>/checkpoints/last.ckpt"', repr(str(ckpt)))
+    namespace: dict = {}
+    exec(compile(block, "README example", "exec"), namespace)
+    assert namespace["fields"].shape == (2, 128 * 128, 1) and namespace["traj"].q.shape == (2, 201, 1)
