@@ -13,6 +13,7 @@ import torch
 from torch import Tensor
 
 from lnf.quadrature import Quadrature
+from lnf.reduction import solve_mass
 from lnf.scenes.base import Scene
 from lnf.siren import FieldJet
 
@@ -89,12 +90,12 @@ class ReducedDynamics:
         rhs = -terms.coriolis - terms.gravity
         if self.forcing is not None:
             rhs = rhs + self.forcing(t, q, v)
-        return torch.linalg.solve(terms.mass, rhs)
+        return solve_mass(terms.mass, rhs)
 
     def hamiltonian_derivatives(self, q: Tensor, p: Tensor, t: float = 0.0) -> tuple[Tensor, Tensor]:
         """(∂H/∂p̃ = q̃̇, −∂H/∂q̃ + τ) at (q̃, p̃) for H = ½ p̃ᵀM̃⁻¹p̃ + Ṽ, from one jet evaluation."""
         jet = self._jet(q, order=2)
-        v = torch.linalg.solve(self._mass(jet.J), p)
+        v = solve_mass(self._mass(jet.J), p)
         kinetic_gradient, _ = self._velocity_contractions(jet, v)
         force = kinetic_gradient - self._gravity(jet)
         if self.forcing is not None:

@@ -93,7 +93,7 @@ class LagrangianNeuralField(nn.Module):
             0 gives the paper's loss ℓ^r + ℓ^p exactly (see :meth:`losses`).
         quadrature: rule for the integrals of the reduced dynamics (default Gauss–Legendre 12×12).
 
-    Defaults are those of ``conf/model/lnf.yaml``; w0 = 10 rather than the paper's 30 (see the README).
+    Defaults are those of ``conf/model/lnf.yaml``: w0 = 10 rather than the paper's 30, and λ_v = 0.1 (see the README).
     """
 
     def __init__(
@@ -104,11 +104,11 @@ class LagrangianNeuralField(nn.Module):
         depth: int = 2,
         w0: float = 10.0,
         hyper_width: int = 128,
-        hyper_depth: int = 0,
+        hyper_depth: int = 1,
         hyper_init_scale: float = 0.1,
         reduction_steps: int = 3,
         step_size: float = 0.1,
-        velocity_weight: float = 0.0,
+        velocity_weight: float = 0.1,
         quadrature: Optional[QuadratureRule] = None,
     ) -> None:
         super().__init__()

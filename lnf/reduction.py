@@ -56,7 +56,14 @@ def project_velocity(J: Tensor, weights: Tensor, velocities: Tensor) -> Tensor:
     """q̃̇ = argmin_v ‖J v − q̇‖²_{ω0} = M̃⁻¹ Σ_j w_j ω0_j J_jᵀ q̇_j (B, d); weights include ω0."""
     M = pullback_mass_matrix(J, weights)
     rhs = torch.einsum("bn,bnai,bna->bi", weights.expand(J.shape[:2]), J, velocities)
-    return torch.linalg.solve(M, rhs)
+    return solve_mass(M, rhs)
+
+
+def solve_mass(mass: Tensor, rhs: Tensor) -> Tensor:
+    """M̃⁻¹ rhs (B, d); rows whose M̃ is singular (φ not an immersion there) come back as NaN, so that
+    rollouts report them as diverged instead of failing inside torch."""
+    x, info = torch.linalg.solve_ex(mass, rhs)
+    return torch.where((info == 0)[:, None], x, torch.full_like(x, float("nan")))
 
 
 def projection_loss(codes: Tensor, reprojected: Tensor, mass: Tensor) -> Tensor:

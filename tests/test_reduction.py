@@ -101,3 +101,11 @@ def test_velocity_loss_measures_velocity_outside_tangent_space():
     # weight 0 is the paper's loss: velocities are ignored
     model.velocity_weight = 0.0
     assert "velocity" not in model.losses(points, values, outside)
+
+
+def test_singular_mass_matrix_gives_nan_not_a_crash():
+    from lnf.reduction import solve_mass
+
+    mass = torch.tensor([[[2.0]], [[0.0]]])
+    out = solve_mass(mass, torch.tensor([[4.0], [1.0]]))
+    assert out[0].item() == 2.0 and torch.isnan(out[1]).all()

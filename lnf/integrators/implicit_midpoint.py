@@ -13,6 +13,7 @@ import torch
 from torch import Tensor
 
 from lnf.integrators.base import FixedStepIntegrator
+from lnf.reduction import solve_mass
 
 
 class ImplicitMidpoint(FixedStepIntegrator):
@@ -44,7 +45,7 @@ class ImplicitMidpoint(FixedStepIntegrator):
 
     def _to_qv(self, dynamics, state: tuple[Tensor, ...]) -> tuple[Tensor, Tensor]:
         q, p = state[0], state[1]
-        return q, torch.linalg.solve(dynamics.mass_matrix(q), p)
+        return q, solve_mass(dynamics.mass_matrix(q), p)
 
     def _bad(self, *xs: Tensor) -> Tensor:
         return super()._bad(xs[0], xs[1])
