@@ -84,10 +84,10 @@ def evaluate_rollouts(
     n, T = states.shape[:2]
     dt = float(times[1] - times[0])
     pts = torch.as_tensor(points, dtype=p.dtype, device=p.device)
-    sub = torch.as_tensor(reduction_subset(len(points), grid_shape, max_reduction_points), device=p.device)
-    pts_r = pts[sub]
-    fields_r = torch.as_tensor(np.asarray(true_fields)[:, :, sub.cpu().numpy()], dtype=p.dtype, device=p.device)
-    vel0 = torch.as_tensor(np.asarray(true_velocities)[:, 0, sub.cpu().numpy()], dtype=p.dtype, device=p.device)
+    sub = reduction_subset(len(points), grid_shape, max_reduction_points)
+    pts_r = pts[torch.as_tensor(sub, device=p.device)]
+    fields_r = torch.as_tensor(np.asarray(true_fields)[:, :, sub], dtype=p.dtype, device=p.device)
+    vel0 = torch.as_tensor(np.asarray(true_velocities)[:, 0, sub], dtype=p.dtype, device=p.device)
 
     q0 = model.reduce(pts_r, fields_r[:, 0])
     v0 = model.project_velocity(q0, pts_r, vel0)
