@@ -437,10 +437,11 @@ class TrajectorySplit:
         """Number of leading samples used for training (from the generation attributes)."""
         return int(self.attrs["generation"]["train_times"])
 
-    def observed(self, max_time: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def observed(self, max_time: int | None = None, velocities: bool = False) -> tuple[np.ndarray, ...]:
         """Each trajectory's masked coarse observations over its first `max_time` samples (all if None).
 
-        Returns points (n, Nobs, dim_B) float32 and values (n, T', Nobs, A) float32.
+        Returns points (n, Nobs, dim_B) float32 and values (n, T', Nobs, A) float32, and with
+        `velocities` also the velocity fields (n, T', Nobs, A) at the same points.
         """
         T = self.times.shape[0]
         t = T if max_time is None else int(max_time)
@@ -449,7 +450,9 @@ class TrajectorySplit:
         idx = np.stack([np.flatnonzero(m) for m in self.masks])  # (n, Nobs)
         points = self.coarse_points[idx]
         values = np.take_along_axis(self.coarse_fields[:, :t], idx[:, None, :, None], axis=2)
-        return points, values
+        if not velocities:
+            return points, values
+        return points, values, np.take_along_axis(self.coarse_velocities[:, :t], idx[:, None, :, None], axis=2)
 
 
 def load_split(path: str | os.PathLike, split: str, scene: Any = None,

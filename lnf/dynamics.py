@@ -105,6 +105,14 @@ class ReducedDynamics:
     def mass_matrix(self, q: Tensor) -> Tensor:
         return self._mass(self.jet(q, self.points, order=1).J)
 
+    def momentum(self, q: Tensor, v: Tensor) -> Tensor:
+        """p̃ = M̃(q̃) q̃̇ (B, d)."""
+        return torch.einsum("bij,bj->bi", self.mass_matrix(q), v)
+
+    def velocity(self, q: Tensor, p: Tensor) -> Tensor:
+        """q̃̇ = M̃(q̃)⁻¹ p̃ (B, d)."""
+        return solve_mass(self.mass_matrix(q), p)
+
     def potential_energy(self, q: Tensor) -> Tensor:
         jet = self._jet(q, order=0)
         return self.potential_fn(jet.value, jet.G)

@@ -16,7 +16,7 @@ from torch import Tensor
 
 from lnf import metrics as M
 from lnf.integrators import Integrator, get_integrator
-from lnf.model import LagrangianNeuralField
+from lnf.reduced_model import ReducedModel
 from lnf.quadrature import Quadrature, QuadratureRule
 
 
@@ -55,7 +55,7 @@ def _chunked(fn, x: Tensor, chunk: int) -> Tensor:
 
 @torch.no_grad()
 def evaluate_rollouts(
-    model: LagrangianNeuralField,
+    model: ReducedModel,
     states: np.ndarray,
     times: np.ndarray,
     points: np.ndarray,
@@ -78,12 +78,14 @@ def evaluate_rollouts(
     if points.ndim != 2 or points.shape[0] == 0:
         raise ValueError(f"evaluation grid has no points: expected shape (N ≥ 1, dim_B), got {points.shape}")
     scene = model.scene
-    p = next(model.parameters())
+    p = model.reference_tensor()
     if true_fields is None or true_velocities is None:
         true_fields, true_velocities = scene.fields(states, points)
     n, T = states.shape[:2]
     dt = float(times[1] - times[0])
     pts = torch.as_tensor(points, dtype=p.dtype, device=p.device)
+    if model.state_is_field:
+        max_reduction_points = None  # the full-order model takes the whole field as its state
     sub = reduction_subset(len(points), grid_shape, max_reduction_points)
     pts_r = pts[torch.as_tensor(sub, device=p.device)]
     fields_r = torch.as_tensor(np.asarray(true_fields)[:, :, sub], dtype=p.dtype, device=p.device)
@@ -140,7 +142,7 @@ def evaluate_rollouts(
 
 @torch.no_grad()
 def long_horizon_energy(
-    model: LagrangianNeuralField,
+    model: ReducedModel,
     states0: np.ndarray,
     points: np.ndarray,
     dt: float,
@@ -153,7 +155,9 @@ def long_horizon_energy(
 ) -> dict[str, float]:
     """energy_drift = max_t |Ẽ(t) − Ẽ(0)| / E_scale over a `steps`-step rollout from full-order states (n, S)."""
     scene = model.scene
-    p = next(model.parameters())
+    p = model.reference_tensor()
+    if model.state_is_field:
+        max_reduction_points = None
     points = np.asarray(points)[reduction_subset(len(points), grid_shape, max_reduction_points)]
     q_true, v_true = scene.fields(states0[:, None], points)
     pts = torch.as_tensor(points, dtype=p.dtype, device=p.device)

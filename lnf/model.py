@@ -19,11 +19,9 @@ from typing import Any, Optional
 import torch
 from torch import Tensor, nn
 
-from lnf.dynamics import ReducedDynamics
-from lnf.integrators import Integrator, Trajectory, get_integrator
-from lnf.quadrature import GaussLegendre, Quadrature, QuadratureRule
-from lnf.reduction import (project_velocity, projection_loss, pullback_mass_matrix, reconstruction_loss,
-                           reduce)
+from lnf.quadrature import Quadrature, QuadratureRule
+from lnf.reduced_model import ReducedModel, as_field
+from lnf.reduction import project_velocity, projection_loss, pullback_mass_matrix, reconstruction_loss, reduce
 from lnf.scenes.base import Scene
 from lnf.siren import ModulatedSiren
 
@@ -42,14 +40,14 @@ def build(spec: dict[str, Any]) -> Any:
     return cls(**spec)
 
 
-def build_model(scene: dict[str, Any], model: dict[str, Any], quadrature: dict[str, Any]) -> "LagrangianNeuralField":
+def build_model(scene: dict[str, Any], model: dict[str, Any], quadrature: dict[str, Any]) -> ReducedModel:
     """Model from plain specs (``{"_target_": ..., **kwargs}``): what checkpoints store."""
     spec = dict(model)
     spec.setdefault("_target_", "lnf.model.LagrangianNeuralField")
     return build({**spec, "scene": build(scene), "quadrature": build(quadrature)})
 
 
-def load(path: "str | Path", map_location: "str | torch.device" = "cpu") -> "LagrangianNeuralField":
+def load(path: "str | Path", map_location: "str | torch.device" = "cpu") -> ReducedModel:
     """Rebuild a trained model from a Lightning checkpoint in one call, without Hydra or Lightning.
 
     The checkpoint's ``hyper_parameters`` hold the scene, model and quadrature specs; the returned model
@@ -75,12 +73,7 @@ def load(path: "str | Path", map_location: "str | torch.device" = "cpu") -> "Lag
     return model
 
 
-def _as_field(values: Tensor) -> Tensor:
-    """Accept (B, N) for scalar fields as well as (B, N, A)."""
-    return values.unsqueeze(-1) if values.ndim == 2 else values
-
-
-class LagrangianNeuralField(nn.Module):
+class LagrangianNeuralField(ReducedModel):
     """φ (modulated SIREN), ρ̃ (K gradient steps with learned α > 0) and the scene's Lagrangian.
 
     Args:
@@ -92,6 +85,9 @@ class LagrangianNeuralField(nn.Module):
         velocity_weight: λ_v of the optional tangent (velocity) reconstruction loss, not in the paper;
             0 gives the paper's loss ℓ^r + ℓ^p exactly (see :meth:`losses`).
         quadrature: rule for the integrals of the reduced dynamics (default Gauss–Legendre 12×12).
+        dynamics: None (the pulled-back Lagrangian, our model) or a ``_target_`` spec of learned latent
+            dynamics, e.g. ``lnf.baselines.latent_mlp.LatentMLPDynamics`` (the black-box baseline; it is
+            fitted after the field, on the codes of the training trajectories).
 
     Defaults are those of ``conf/model/lnf.yaml``: w0 = 10 rather than the paper's 30, and λ_v = 0.1 (see the README).
     """
@@ -110,8 +106,9 @@ class LagrangianNeuralField(nn.Module):
         step_size: float = 0.1,
         velocity_weight: float = 0.1,
         quadrature: Optional[QuadratureRule] = None,
+        dynamics: Optional[dict[str, Any]] = None,
     ) -> None:
-        super().__init__()
+        super().__init__(scene, quadrature)
         if int(reduction_steps) != reduction_steps or reduction_steps < 1:
             raise ValueError(f"model.reduction_steps (K) must be an integer ≥ 1, got {reduction_steps!r}")
         if not step_size > 0:
@@ -119,65 +116,32 @@ class LagrangianNeuralField(nn.Module):
         if not velocity_weight >= 0:
             raise ValueError(f"model.velocity_weight must be ≥ 0, got {velocity_weight!r}")
         self.velocity_weight = float(velocity_weight)
-        self.scene = scene
         self.field = ModulatedSiren(latent_dim=latent_dim, in_dim=scene.body_dim, out_dim=scene.field_dim,
                                     width=width, depth=depth, w0=w0, hyper_width=hyper_width,
                                     hyper_depth=hyper_depth, hyper_init_scale=hyper_init_scale)
         self.reduction_steps = int(reduction_steps)
         self.log_step_size = nn.Parameter(torch.tensor(math.log(step_size)))
-        self.quadrature_rule = quadrature if quadrature is not None else GaussLegendre(12)
-        self.checkpoint: dict[str, Any] = {}
-
-    @property
-    def latent_dim(self) -> int:
-        return self.field.latent_dim
+        self.latent_dynamics: Optional[nn.Module] = None
+        if dynamics is not None and not _is_lagrangian(dynamics):
+            self.latent_dynamics = build({**dynamics, "latent_dim": int(latent_dim)})
 
     @property
     def step_size(self) -> Tensor:
         return self.log_step_size.exp()
 
-    def _density(self, points: Tensor) -> Tensor:
-        return self.scene.density(points)
-
-    # ------------------------------------------------------------------ embedding and reduction
-    def decode(self, codes: Tensor, points: Tensor, chunk: int = 65536) -> Tensor:
-        """φ(q̃, X): codes (B, d), points (N, dim_B) or (B, N, dim_B) → (B, N, A). Chunked over points."""
-        points = points.to(codes)
-        if points.shape[-2] <= chunk:
-            return self.field(codes, points)
-        parts = [self.field(codes, points[..., i:i + chunk, :]) for i in range(0, points.shape[-2], chunk)]
-        return torch.cat(parts, dim=-2)
-
     def reduce(self, points: Tensor, values: Tensor, steps: Optional[int] = None) -> Tensor:
         """ρ̃(q): observed field values (B, N, A) at points (N or B, N, dim_B) → codes (B, d)."""
-        values = _as_field(values)
+        values = as_field(values)
         points = points.to(values)
         self._check_observation(points, values, "values")
         density = self._density(points)
         return reduce(self.field, points, values, density, self.step_size, steps or self.reduction_steps)
 
-    def project_velocity(self, codes: Tensor, points: Tensor, velocities: Tensor,
-                         weights: Optional[Tensor] = None) -> Tensor:
-        """q̃̇ = (dφ)^{†,ω0} q̇: velocity field (B, N, A) at points → (B, d).
-
-        `weights` are quadrature weights of the points (N,); uniform (|B|/N) if omitted.
-        """
-        velocities = _as_field(velocities)
-        points = points.to(velocities)
-        self._check_observation(points, velocities, "velocities")
-        if weights is None:
-            weights = points.new_full(points.shape[:-1], 1.0 / points.shape[-2])
-        ww = weights.to(velocities) * self._density(points)
-        return project_velocity(self.field.jet(codes, points, order=1).J, ww, velocities)
-
-    def _check_observation(self, points: Tensor, values: Tensor, what: str) -> None:
-        if points.shape[-1] != self.scene.body_dim or points.shape[-2] == 0:
-            raise ValueError(f"points must have shape (N, {self.scene.body_dim}) with N ≥ 1, got {tuple(points.shape)}")
-        if values.ndim != 3 or values.shape[-2] != points.shape[-2] or values.shape[-1] != self.scene.field_dim:
-            raise ValueError(f"{what} must have shape (B, {points.shape[-2]}, {self.scene.field_dim}) to match "
-                             f"points {tuple(points.shape)}, got {tuple(values.shape)}")
-        if not torch.isfinite(values).all():
-            raise ValueError(f"{what} contain NaN or inf")
+    def dynamics(self, quadrature: "Quadrature | QuadratureRule | None" = None) -> Any:
+        """The pulled-back Lagrangian system, or the learned latent dynamics of the black-box baseline."""
+        if self.latent_dynamics is None:
+            return self.lagrangian_dynamics(quadrature)
+        return self.latent_dynamics.as_dynamics(self.lagrangian_dynamics(quadrature))
 
     # ------------------------------------------------------------------ training losses (DESIGN.md §2)
     def losses(self, points: Tensor, values: Tensor, velocities: Optional[Tensor] = None) -> dict[str, Tensor]:
@@ -211,29 +175,10 @@ class LagrangianNeuralField(nn.Module):
         out["codes"] = codes.detach()
         return out
 
-    # ------------------------------------------------------------------ reduced dynamics
-    def dynamics(self, quadrature: "Quadrature | QuadratureRule | None" = None) -> ReducedDynamics:
-        """The reduced Lagrangian system on `quadrature` (default: the model's rule)."""
-        rule = quadrature if quadrature is not None else self.quadrature_rule
-        quad = rule if isinstance(rule, Quadrature) else rule.build(self.scene.bounds)
-        p = next(self.parameters())
-        return ReducedDynamics(self.field.jet, self.scene, quad.to(device=p.device, dtype=p.dtype))
-
-    def rollout(self, q0: Tensor, v0: Tensor, dt: float, steps: int,
-                integrator: "str | Integrator | dict" = "implicit_midpoint", record_every: int = 1,
-                quadrature: "Quadrature | QuadratureRule | None" = None,
-                on_divergence: str = "raise") -> Trajectory:
-        """Integrate M̃q̃̈ + c̃ + g̃ = 0 from (q̃0, q̃̇0) (B, d) for `steps` steps of `dt` [s]."""
-        with torch.no_grad():
-            return get_integrator(integrator).integrate(self.dynamics(quadrature), q0, v0, dt, steps,
-                                                        record_every=record_every, on_divergence=on_divergence)
-
-    def energy(self, q: Tensor, v: Tensor, quadrature: "Quadrature | QuadratureRule | None" = None
-               ) -> tuple[Tensor, Tensor]:
-        """(T̃, Ṽ) of reduced states q̃, q̃̇ (..., d) → each (...)."""
-        with torch.no_grad():
-            return self.dynamics(quadrature).energies(q, v)
-
-    # ------------------------------------------------------------------ description
     def extra_repr(self) -> str:
-        return f"scene={self.scene!r}, K={self.reduction_steps}, quadrature={self.quadrature_rule.describe()}"
+        kind = "lagrangian" if self.latent_dynamics is None else type(self.latent_dynamics).__name__
+        return f"{super().extra_repr()}, K={self.reduction_steps}, dynamics={kind}"
+
+
+def _is_lagrangian(spec: dict[str, Any]) -> bool:
+    return str(spec.get("_target_", "")).endswith("ReducedDynamics")

@@ -16,12 +16,24 @@ import lightning.pytorch as pl
 import torch
 from omegaconf import DictConfig, OmegaConf
 
+from lnf.baselines.latent_mlp import latent_trajectories
 from lnf.training.callbacks import RolloutEvaluationCallback, write_json_atomic
 from lnf.training.datamodule import SnapshotDataModule
 from lnf.training.module import LNFModule
 from lnf.utils import check_config, print_summary, resolved_config, run_metadata
 
 log = logging.getLogger("lnf.train")
+
+
+def fit_latent_dynamics(model: Any, datamodule: SnapshotDataModule) -> dict[str, float]:
+    """Fit the black-box latent dynamics to the codes of the training trajectories (after the field)."""
+    points, values, velocities = (torch.as_tensor(a) for a in datamodule.observations("train"))
+    model.eval()
+    q, v = latent_trajectories(model, points, values, velocities)
+    with torch.enable_grad():
+        info = model.latent_dynamics.fit(q, v, datamodule.config.dt)
+    log.info("latent dynamics fitted in %.1f s (loss %.3e)", info["latent_fit_seconds"], info["latent_fit_loss"])
+    return info
 
 
 def _container(node: Any) -> Any:
@@ -53,7 +65,11 @@ def train(cfg: DictConfig) -> dict[str, float]:
     datamodule: SnapshotDataModule = hydra.utils.instantiate(cfg.data, scene=scene_spec, _convert_="all")
     log.info("dataset: %s", datamodule.path)
     datamodule.prepare_data()
-    module = LNFModule(scene=scene_spec, model=_container(cfg.model), quadrature=_container(cfg.quadrature),
+    model_spec = _container(cfg.model)
+    dynamics_spec = _container(cfg.get("dynamics"))
+    if dynamics_spec and not str(dynamics_spec.get("_target_", "")).endswith("ReducedDynamics"):
+        model_spec["dynamics"] = dynamics_spec
+    module = LNFModule(scene=scene_spec, model=model_spec, quadrature=_container(cfg.quadrature),
                        optimizer=_container(cfg.optimizer), data=datamodule.describe())
     evaluation = RolloutEvaluationCallback(integrator=_container(cfg.integrator), output_dir=str(output_dir),
                                            **_container(cfg.evaluation))
@@ -62,14 +78,28 @@ def train(cfg: DictConfig) -> dict[str, float]:
                                                   logger=build_loggers(cfg, output_dir) or False)
     for logger in trainer.loggers:
         logger.log_hyperparams(resolved_config(cfg))
-    trainer.fit(module, datamodule=datamodule, ckpt_path=cfg.get("ckpt_path"))
+    model = module.model
+    fit_info: dict[str, float] = {}
+    if model.trainable:
+        trainer.fit(module, datamodule=datamodule, ckpt_path=cfg.get("ckpt_path"))
+    else:
+        log.info("%s is fitted in closed form: no gradient training", type(model).__name__)
+        points, values, _ = datamodule.observations("train")
+        fit_info.update(model.fit_to_observations(torch.as_tensor(points), torch.as_tensor(values)))
+    if getattr(model, "latent_dynamics", None) is not None:
+        fit_info.update(fit_latent_dynamics(model, datamodule))
     train_seconds = time.perf_counter() - start
     trainer.test(module, datamodule=datamodule, verbose=False)
+    if not model.trainable or getattr(model, "latent_dynamics", None) is not None:
+        # the checkpoint that lnf.load / lnf.evaluate read must hold what was fitted after (or instead of) training
+        trainer.save_checkpoint(output_dir / "checkpoints" / "last.ckpt")
 
     metrics = {k: float(v) for k, v in evaluation.test_metrics.items()}
     metrics["train_seconds"] = train_seconds
     metrics["total_seconds"] = time.perf_counter() - start
-    metrics["step_size"] = float(module.model.step_size.detach())
+    metrics.update(fit_info)
+    if hasattr(model, "step_size"):
+        metrics["step_size"] = float(model.step_size.detach())
     val = trainer.callback_metrics
     for key in ("val/loss", "val/field_rel_l2/all/median"):
         if key in val:

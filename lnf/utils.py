@@ -20,10 +20,15 @@ SUMMARY_KEYS = [
 def check_config(cfg: DictConfig) -> None:
     """Clear errors for settings that would otherwise fail deep inside torch."""
     model = cfg.model
-    if int(model.latent_dim) < 1:
+    if model.get("latent_dim") is not None and int(model.latent_dim) < 1:
         raise ValueError(f"model.latent_dim must be ≥ 1, got {model.latent_dim}")
-    if int(model.reduction_steps) < 1:
+    if model.get("reduction_steps") is not None and int(model.reduction_steps) < 1:
         raise ValueError(f"model.reduction_steps (K) must be ≥ 1, got {model.reduction_steps}")
+    dynamics = cfg.get("dynamics")
+    if dynamics is not None and not str(dynamics.get("_target_", "")).endswith("ReducedDynamics") \
+            and not str(model.get("_target_", "")).endswith("LagrangianNeuralField"):
+        raise ValueError(f"dynamics={dynamics._target_} (learned latent dynamics) needs model=lnf (a neural field "
+                         f"with codes to learn on), got model={model.get('_target_')}")
     missing = {f"{k}.{m}" for k, v in cfg.items() if k != "hydra" and OmegaConf.is_config(v)
                for m in OmegaConf.missing_keys(v)}
     if missing:

@@ -10,7 +10,7 @@ from omegaconf import OmegaConf
 from helpers import CONF, TINY, compose_config
 from lnf.model import build_model
 
-GROUPS = ["scene", "model", "quadrature", "integrator", "data", "optimizer", "trainer", "logger", "callbacks"]
+GROUPS = ["scene", "model", "dynamics", "quadrature", "integrator", "data", "optimizer", "trainer", "logger", "callbacks"]
 
 
 def _options(group):
@@ -24,7 +24,16 @@ def test_every_option_composes_and_instantiates(group, option, tmp_path):
     plain = OmegaConf.to_container(node, resolve=True)
     if group == "model":
         model = build_model(OmegaConf.to_container(cfg.scene), plain, OmegaConf.to_container(cfg.quadrature))
-        assert model.latent_dim == cfg.model.latent_dim
+        if option == "full_order":  # its state is the field on resolution² nodes
+            assert model.latent_dim == cfg.model.resolution ** 2
+        else:
+            assert model.latent_dim == cfg.model.latent_dim
+    elif group == "dynamics":
+        model_spec = {**OmegaConf.to_container(cfg.model, resolve=True), "dynamics": plain}
+        model = build_model(OmegaConf.to_container(cfg.scene), model_spec, OmegaConf.to_container(cfg.quadrature))
+        assert (model.latent_dynamics is None) == (option == "lagrangian")
+        if option == "latent_mlp":  # no Hamiltonian: the option switches the integrator to RK4
+            assert cfg.integrator._target_.endswith("RK4")
     elif group == "data":
         dm = hydra.utils.instantiate(node, scene=OmegaConf.to_container(cfg.scene))
         assert dm.path.parent == Path(cfg.paths.data_dir)

@@ -129,3 +129,36 @@ def test_readme_python_example_runs(trained):
     namespace: dict = {}
     exec(compile(block, "README example", "exec"), namespace)
     assert namespace["fields"].shape == (2, 128 * 128, 1) and namespace["traj"].q.shape == (2, 201, 1)
+
+
+BASELINES = {
+    "pod": ["model=pod", "model.latent_dim=2"],
+    "full_order": ["model=full_order", "model.resolution=12"],
+    "latent_mlp": ["dynamics=latent_mlp", "dynamics.iterations=20", "model.width=16", "model.hyper_width=8"],
+}
+
+
+@pytest.mark.parametrize("name", sorted(BASELINES))
+def test_each_baseline_is_trained_and_evaluated_by_the_same_entry_point(name, tmp_path):
+    data = [o for o in TINY if o.startswith(("data.", "evaluation."))]
+    cfg = compose_config("train", ["+experiment=pendulum", "trainer=smoke", "logger=csv", *data, *BASELINES[name]],
+                         tmp_path)
+    metrics = train(cfg)
+    out = Path(cfg.paths.output_dir)
+    saved = json.loads((out / "metrics.json").read_text())
+    assert saved == pytest.approx(metrics) and np.isfinite(saved["field_rel_l2/all/median"])
+    model = lnf.load(out / "checkpoints" / "last.ckpt")  # holds what was fitted after or instead of training
+    assert type(model).__name__ == {"pod": "PODGalerkin", "full_order": "FullOrderModel",
+                                    "latent_mlp": "LagrangianNeuralField"}[name]
+    if name == "latent_mlp":
+        assert bool(model.latent_dynamics.fitted) and cfg.integrator._target_.endswith("RK4")
+    res = evaluate(compose_config("evaluate", [f"ckpt_path={out / 'checkpoints' / 'last.ckpt'}", "figures=0",
+                                               f"integrator={'rk4' if name == 'latent_mlp' else 'implicit_midpoint'}"],
+                                  tmp_path / "eval"))
+    assert res["field_rel_l2/all/median"] == pytest.approx(saved["field_rel_l2/all/median"], rel=1e-3)
+
+
+def test_latent_dynamics_need_a_neural_field(tmp_path):
+    cfg = compose_config("train", ["+experiment=pendulum", "model=pod", "dynamics=latent_mlp"], tmp_path)
+    with pytest.raises(ValueError, match="needs model=lnf"):
+        train(cfg)

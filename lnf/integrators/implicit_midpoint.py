@@ -13,7 +13,6 @@ import torch
 from torch import Tensor
 
 from lnf.integrators.base import FixedStepIntegrator
-from lnf.reduction import solve_mass
 
 
 class ImplicitMidpoint(FixedStepIntegrator):
@@ -39,13 +38,16 @@ class ImplicitMidpoint(FixedStepIntegrator):
         return f"ImplicitMidpoint(order={self.order}, substeps={self.substeps}, tol={self.tol:g})"
 
     def _to_internal(self, dynamics, q: Tensor, v: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        p = torch.einsum("bij,bj->bi", dynamics.mass_matrix(q), v)
+        if not hasattr(dynamics, "hamiltonian_derivatives"):
+            raise ValueError(f"{type(dynamics).__name__} has no Hamiltonian (it is not the pullback of a Lagrangian), "
+                             "so the symplectic implicit midpoint rule does not apply; use integrator=rk4 or dopri5")
+        p = dynamics.momentum(q, v)
         # the last two entries carry the previous step's rates (q̃̇ₘ, ṗₘ): the predictor of the next solve
         return q, p, v.clone(), torch.zeros_like(p)
 
     def _to_qv(self, dynamics, state: tuple[Tensor, ...]) -> tuple[Tensor, Tensor]:
         q, p = state[0], state[1]
-        return q, solve_mass(dynamics.mass_matrix(q), p)
+        return q, dynamics.velocity(q, p)
 
     def _bad(self, *xs: Tensor) -> Tensor:
         return super()._bad(xs[0], xs[1])

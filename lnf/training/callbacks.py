@@ -89,6 +89,9 @@ class RolloutEvaluationCallback(pl.Callback):
     def on_validation_epoch_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
         if trainer.sanity_checking or self.every_n_epochs <= 0:
             return
+        latent = getattr(pl_module.model, "latent_dynamics", None)
+        if latent is not None and not bool(latent.fitted):
+            return  # black-box dynamics are fitted after the field: nothing to roll out yet
         self._val_count += 1
         if self._val_count % self.every_n_epochs:
             return

@@ -20,24 +20,22 @@ log = logging.getLogger("lnf.data")
 
 
 class SnapshotDataset(Dataset):
-    """Snapshots (trajectory i, time k < max_time) of each trajectory's own masked coarse observations.
+    """Snapshots (trajectory i, time k) of each trajectory's own masked coarse observations.
 
-    Item: points (Nobs, dim_B), values (Nobs, A) and velocities (Nobs, A), float32.
+    Built from points (n, Nobs, dim_B), values and velocities (n, T', Nobs, A) (see
+    :meth:`SnapshotDataModule.observations`). Item: points (Nobs, dim_B), values (Nobs, A), velocities (Nobs, A).
     """
 
-    def __init__(self, split: TrajectorySplit, max_time: int) -> None:
-        points, values = split.observed(max_time)
-        self.points = torch.as_tensor(points, dtype=torch.float32)  # (n, Nobs, dim_B)
-        self.values = torch.as_tensor(values, dtype=torch.float32)  # (n, T', Nobs, A)
-        masks = torch.as_tensor(split.masks)
-        vel = torch.as_tensor(split.coarse_velocities[:, :max_time], dtype=torch.float32)
-        self.velocities = torch.stack([vel[i][:, masks[i]] for i in range(len(masks))])  # (n, T', Nobs, A)
+    def __init__(self, points: np.ndarray, values: np.ndarray, velocities: np.ndarray) -> None:
+        self.points = torch.as_tensor(points, dtype=torch.float32)
+        self.values = torch.as_tensor(values, dtype=torch.float32)
+        self.velocities = torch.as_tensor(velocities, dtype=torch.float32)
         self.n_times = self.values.shape[1]
 
     def __len__(self) -> int:
         return self.values.shape[0] * self.n_times
 
-    def __getitem__(self, index: int) -> tuple[torch.Tensor, torch.Tensor]:
+    def __getitem__(self, index: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         i, k = divmod(int(index), self.n_times)
         return self.points[i], self.values[i, k], self.velocities[i, k]
 
@@ -50,11 +48,13 @@ def default_path(data_dir: str | Path, scene: Scene, cfg: DatasetConfig) -> Path
 
 class SnapshotDataModule(pl.LightningDataModule):
     """Args: scene (object or spec), data_dir, path (None → :func:`default_path`), on_mismatch
-    ('regenerate' | 'error'), batch_size, num_workers, and the :class:`DatasetConfig` fields."""
+    ('regenerate' | 'error'), batch_size, num_workers, noise (std of Gaussian noise added to the observed
+    training values and velocities, relative to their RMS over the split; seeded by `seed`), and the
+    :class:`DatasetConfig` fields."""
 
     def __init__(self, scene: "Scene | dict", data_dir: str = "data", path: Optional[str] = None,
                  on_mismatch: str = "regenerate", batch_size: int = 32, num_workers: int = 0,
-                 **generation: Any) -> None:
+                 noise: float = 0.0, **generation: Any) -> None:
         super().__init__()
         self.scene = build(scene) if isinstance(scene, dict) else scene
         self.config = DatasetConfig.from_mapping(generation)
@@ -63,6 +63,9 @@ class SnapshotDataModule(pl.LightningDataModule):
         if int(batch_size) != batch_size or batch_size < 1:
             raise ValueError(f"data.batch_size must be an integer ≥ 1, got {batch_size!r}")
         self.batch_size, self.num_workers = int(batch_size), int(num_workers)
+        if not (np.isfinite(noise) and noise >= 0):
+            raise ValueError(f"data.noise must be a finite number ≥ 0 (relative noise std), got {noise!r}")
+        self.noise = float(noise)
         self._splits: dict[str, TrajectorySplit] = {}
 
     def prepare_data(self) -> None:
@@ -77,8 +80,19 @@ class SnapshotDataModule(pl.LightningDataModule):
     def setup(self, stage: Optional[str] = None) -> None:
         self.prepare_data()
 
+    def observations(self, split: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """What a model may learn from: each trajectory's masked coarse points (n, Nobs, dim_B), values and
+        velocities (n, T', Nobs, A) over the first `train_times` samples, with `noise` added to the training split."""
+        points, values, velocities = self.split(split).observed(self.config.train_times, velocities=True)
+        if self.noise > 0 and split == "train":
+            rng = np.random.default_rng(self.config.seed + 7919)
+            for arr in (values, velocities):
+                rms = float(np.sqrt(np.mean(arr.astype(np.float64) ** 2)))
+                arr += (self.noise * rms * rng.standard_normal(arr.shape)).astype(arr.dtype)
+        return points, values, velocities
+
     def _loader(self, split: str, shuffle: bool) -> DataLoader:
-        ds = SnapshotDataset(self.split(split), self.config.train_times)
+        ds = SnapshotDataset(*self.observations(split))
         return DataLoader(ds, batch_size=self.batch_size, shuffle=shuffle, num_workers=self.num_workers,
                           drop_last=shuffle and len(ds) > self.batch_size, persistent_workers=self.num_workers > 0)
 
@@ -94,3 +108,7 @@ class SnapshotDataModule(pl.LightningDataModule):
     def describe(self) -> dict[str, Any]:
         """Data settings to store in checkpoints (enough to regenerate the same file)."""
         return {"path": str(self.path), "on_mismatch": self.on_mismatch, **self.config.__dict__}
+
+    def describe_observations(self) -> dict[str, Any]:
+        """How the training observations were corrupted (kept beside :meth:`describe` in checkpoints)."""
+        return {"noise": self.noise}

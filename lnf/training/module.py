@@ -12,7 +12,7 @@ from lnf.model import build_model
 
 
 class LNFModule(pl.LightningModule):
-    """Trains φ and ρ̃ with ℓ = ℓ^r + ℓ^p (DESIGN.md §2).
+    """Trains φ and ρ̃ with ℓ = ℓ^r + ℓ^p (DESIGN.md §2); wraps closed-form baselines (POD, full order) too.
 
     All arguments are plain dicts so that the checkpoint describes itself (``save_hyperparameters``).
 
@@ -54,11 +54,12 @@ class LNFModule(pl.LightningModule):
                 f"(now {self.optimizer_cfg['lr']}) or model.step_size")
         return loss
 
-    def validation_step(self, batch: tuple[Tensor, ...], batch_idx: int) -> Tensor:
-        return self._step(batch, "val")
+    def validation_step(self, batch: tuple[Tensor, ...], batch_idx: int) -> Optional[Tensor]:
+        return self._step(batch, "val") if self.model.trainable else None
 
-    def test_step(self, batch: tuple[Tensor, ...], batch_idx: int) -> Tensor:
-        return self._step(batch, "test")
+    def test_step(self, batch: tuple[Tensor, ...], batch_idx: int) -> Optional[Tensor]:
+        # closed-form baselines have no training loss; their test metrics come from the evaluation callback
+        return self._step(batch, "test") if self.model.trainable else None
 
     def configure_optimizers(self) -> dict[str, Any]:
         cfg = self.optimizer_cfg

@@ -1,0 +1,239 @@
+"""POD-Galerkin: the linear special case of our model, φ(q̃, X) = m(X) + Φ(X) q̃ (DESIGN.md §6 baselines).
+
+The mean m and the k modes Φ are L²-orthonormal functions of X, stored as coefficients in a tensor
+basis of normalised Legendre polynomials on the box B (so they can be evaluated, and differentiated in
+X, anywhere: the model is as discretization-agnostic as ours). They come from an SVD of the training
+snapshots: each masked training frame is first fitted in that basis by (ridge) least squares on its
+observed points; because the basis is L²-orthonormal, the SVD of the coefficient matrix is the POD of
+the fields in L². The reduction ρ is the exact least-squares projection on the observed points, and the
+dynamics are the same pulled-back :class:`lnf.dynamics.ReducedDynamics` as ours (J = Φ, H = 0).
+"""
+from __future__ import annotations
+
+import logging
+from typing import Optional
+
+import numpy as np
+import torch
+from numpy.polynomial import legendre
+from torch import Tensor, nn
+
+from lnf.quadrature import QuadratureRule
+from lnf.reduced_model import ReducedModel, as_field
+from lnf.reduction import project_velocity
+from lnf.scenes.base import Scene
+from lnf.siren import FieldJet
+
+log = logging.getLogger("lnf.pod")
+
+
+class LegendreBasis:
+    """Tensor products of L²-normalised Legendre polynomials of degree ≤ `degree` per axis on `bounds`.
+
+    ``values(points)`` → (..., N, n_basis); ``gradients(points)`` → (..., N, n_basis, dim_B); float64 numpy.
+    """
+
+    def __init__(self, bounds: list[list[float]], degree: int) -> None:
+        if int(degree) != degree or degree < 0:
+            raise ValueError(f"model.degree (Legendre degree per axis) must be an integer ≥ 0, got {degree!r}")
+        self.bounds = np.asarray(bounds, dtype=np.float64)
+        self.degree = int(degree)
+        self.dim = len(self.bounds)
+        n = np.arange(self.degree + 1)
+        width = self.bounds[:, 1] - self.bounds[:, 0]
+        # ∫_lo^hi (c P_n(t(x)))² dx = 1  with t = 2(x − lo)/(hi − lo) − 1
+        self.scale = np.sqrt((2 * n + 1) / 2.0)[None, :] * np.sqrt(2.0 / width)[:, None]  # (dim, p+1)
+        # column n of `deriv` holds the Legendre coefficients of P_n'
+        self.deriv = np.zeros((self.degree + 1, self.degree + 1))
+        for k in range(1, self.degree + 1):
+            self.deriv[:k, k] = legendre.legder(np.eye(self.degree + 1)[k])[:k]
+
+    @property
+    def size(self) -> int:
+        return (self.degree + 1) ** self.dim
+
+    def multi_indices(self) -> np.ndarray:
+        """(n_basis, dim) polynomial degrees of each basis function, in the order of :meth:`values`."""
+        grids = np.meshgrid(*[np.arange(self.degree + 1)] * self.dim, indexing="ij")
+        return np.stack([g.reshape(-1) for g in grids], axis=-1)
+
+    def _axes(self, points: np.ndarray) -> tuple[list[np.ndarray], list[np.ndarray]]:
+        lo, hi = self.bounds[:, 0], self.bounds[:, 1]
+        t = 2.0 * (points - lo) / (hi - lo) - 1.0
+        vals, ders = [], []
+        for k in range(self.dim):
+            V = legendre.legvander(t[..., k], self.degree)  # (..., N, p+1)
+            vals.append(V * self.scale[k])
+            ders.append((V @ self.deriv) * self.scale[k] * (2.0 / (hi[k] - lo[k])))
+        return vals, ders
+
+    @staticmethod
+    def _outer(factors: list[np.ndarray]) -> np.ndarray:
+        out = factors[0]
+        for f in factors[1:]:
+            out = (out[..., :, None] * f[..., None, :]).reshape(*out.shape[:-1], -1)
+        return out
+
+    def values(self, points: np.ndarray) -> np.ndarray:
+        return self._outer(self._axes(np.asarray(points, dtype=np.float64))[0])
+
+    def gradients(self, points: np.ndarray) -> np.ndarray:
+        vals, ders = self._axes(np.asarray(points, dtype=np.float64))
+        return np.stack([self._outer([ders[j] if j == k else vals[j] for j in range(self.dim)])
+                         for k in range(self.dim)], axis=-1)
+
+
+class LinearEmbedding(nn.Module):
+    """φ(q̃, X) = Σ_b B_b(X) (m_b + Σ_i A_bi q̃_i): the mean `mean` (n_basis, A) and modes `modes` (n_basis, A, d)
+    are buffers (set by :meth:`PODGalerkin.fit_to_observations`). Same call and ``jet`` signature as
+    :class:`lnf.siren.ModulatedSiren`; J = Φ(X), H = 0."""
+
+    def __init__(self, bounds: list[list[float]], latent_dim: int, out_dim: int, degree: int) -> None:
+        super().__init__()
+        self.basis = LegendreBasis(bounds, degree)
+        self.latent_dim, self.out_dim, self.in_dim = int(latent_dim), int(out_dim), len(bounds)
+        self.register_buffer("mean", torch.zeros(self.basis.size, out_dim))
+        self.register_buffer("modes", torch.zeros(self.basis.size, out_dim, latent_dim))
+        self._cache: dict = {}
+
+    def _basis(self, points: Tensor, spatial: bool) -> tuple[Tensor, Optional[Tensor]]:
+        key = (points.data_ptr(), tuple(points.shape), points._version, points.dtype, spatial)
+        if key not in self._cache:
+            pts = points.detach().double().cpu().numpy()
+            B = torch.as_tensor(self.basis.values(pts), dtype=self.mean.dtype, device=self.mean.device)
+            dB = (torch.as_tensor(self.basis.gradients(pts), dtype=self.mean.dtype, device=self.mean.device)
+                  if spatial else None)
+            if len(self._cache) > 8:
+                self._cache.clear()
+            self._cache[key] = (B, dB)
+        return self._cache[key]
+
+    def forward(self, codes: Tensor, points: Tensor) -> Tensor:
+        return self.jet(codes, points, order=0).value
+
+    def jet(self, codes: Tensor, points: Tensor, order: int = 1, spatial: bool = False) -> FieldJet:
+        """Shapes as :meth:`lnf.siren.ModulatedSiren.jet`; points (N, dim_B) or (B, N, dim_B)."""
+        if codes.ndim != 2 or codes.shape[-1] != self.latent_dim:
+            raise ValueError(f"codes must have shape (B, {self.latent_dim}), got {tuple(codes.shape)}")
+        B, d = codes.shape
+        basis, grad = self._basis(points, spatial)
+        basis = basis.to(codes.dtype)
+        mean, modes = self.mean.to(codes.dtype), self.modes.to(codes.dtype)
+        J = torch.einsum("...nb,bai->...nai", basis, modes)  # (N, A, d) or (B, N, A, d)
+        J = J.expand(B, *J.shape[-3:]) if J.ndim == 3 else J
+        value = torch.einsum("...nb,ba->...na", basis, mean) + torch.einsum("bnai,bi->bna", J, codes)
+        value = value.expand(B, *value.shape[-2:]) if value.ndim == 2 else value
+        jet = FieldJet(value=value)
+        if order >= 1:
+            jet.J = J
+        if order >= 2:
+            jet.H = J.new_zeros(*J.shape, d)
+        if spatial:
+            grad = grad.to(codes.dtype)
+            GJ = torch.einsum("...nbk,bai->...naki", grad, modes)
+            GJ = GJ.expand(B, *GJ.shape[-4:]) if GJ.ndim == 4 else GJ
+            G = torch.einsum("...nbk,ba->...nak", grad, mean)
+            jet.G = (G.expand(B, *G.shape[-3:]) if G.ndim == 3 else G) + torch.einsum("bnaki,bi->bnak", GJ, codes)
+            if order >= 1:
+                jet.GJ = GJ
+        return jet
+
+
+class PODGalerkin(ReducedModel):
+    """POD modes + Galerkin projection of the scene's Lagrangian: our model with a linear embedding.
+
+    Args:
+        scene: the scene.
+        latent_dim: k, the number of POD modes.
+        degree: Legendre degree per axis of the basis the snapshots and modes are represented in.
+        ridge: Tikhonov weight of the per-frame snapshot fits, relative to the mean diagonal of PᵀP.
+        max_condition: largest condition number of a per-frame fit (it caps the degree used).
+        quadrature: rule of the reduced dynamics (as for our model).
+    """
+
+    trainable = False
+
+    def __init__(self, scene: Scene, latent_dim: int = 1, degree: int = 12, ridge: float = 1e-12,
+                 max_condition: float = 1e3, quadrature: Optional[QuadratureRule] = None) -> None:
+        super().__init__(scene, quadrature)
+        if int(latent_dim) != latent_dim or latent_dim < 1:
+            raise ValueError(f"model.latent_dim (number of POD modes) must be an integer ≥ 1, got {latent_dim!r}")
+        if not ridge >= 0:
+            raise ValueError(f"model.ridge must be ≥ 0, got {ridge!r}")
+        if not max_condition >= 1:
+            raise ValueError(f"model.max_condition must be ≥ 1, got {max_condition!r}")
+        self.ridge, self.max_condition = float(ridge), float(max_condition)
+        self.field = LinearEmbedding(scene.bounds, int(latent_dim), scene.field_dim, degree)
+        self.register_buffer("singular_values", torch.zeros(int(latent_dim)))
+        self.register_buffer("fitted", torch.tensor(False))
+
+    def reduce(self, points: Tensor, values: Tensor, steps: Optional[int] = None) -> Tensor:
+        """ρ(q) = argmin_q̃ Σ_j ω0 ‖m(X_j) + Φ(X_j) q̃ − q_j‖²: exact least squares (B, N, A) → (B, d)."""
+        self._check_fitted()
+        values = as_field(values)
+        points = points.to(values)
+        self._check_observation(points, values, "values")
+        zero = values.new_zeros(values.shape[0], self.latent_dim)
+        jet = self.field.jet(zero, points, order=1)
+        weights = self._density(points).expand(jet.value.shape[:2]) / points.shape[-2]
+        return project_velocity(jet.J, weights, values - jet.value)
+
+    def dynamics(self, quadrature=None):
+        self._check_fitted()
+        return super().dynamics(quadrature)
+
+    def _check_fitted(self) -> None:
+        if not bool(self.fitted):
+            raise RuntimeError("PODGalerkin has no modes yet: call fit_to_observations (python -m lnf.train does)")
+
+    @torch.no_grad()
+    def fit_to_observations(self, points: Tensor, values: Tensor) -> dict[str, float]:
+        """Modes from training observations: points (n, Nobs, dim_B), values (n, T, Nobs, A).
+
+        Each frame is fitted in the Legendre basis by (ridge) least squares on its own observed points,
+        up to the largest degree p_eff ≤ `degree` whose basis matrix on every trajectory's points has a
+        condition number ≤ `max_condition` (higher degrees would amplify noise, even float32 rounding);
+        the SVD of the fitted coefficients gives the mean and the modes.
+        """
+        pts = np.asarray(points, dtype=np.float64)
+        vals = np.asarray(values, dtype=np.float64)
+        if pts.ndim != 3 or vals.ndim != 4 or vals.shape[0] != pts.shape[0] or vals.shape[2] != pts.shape[1]:
+            raise ValueError(f"POD fit needs points (n, Nobs, dim_B) and values (n, T, Nobs, A), got {pts.shape} and "
+                             f"{vals.shape}")
+        n, T, n_obs, A = vals.shape
+        basis = self.field.basis
+        full = np.stack([basis.values(pts[i]) for i in range(n)])  # (n, Nobs, n_basis)
+        p_eff = -1
+        for p in range(basis.degree, -1, -1):  # the largest degree the observed points determine well
+            cols = np.flatnonzero((basis.multi_indices() <= p).all(-1))
+            if len(cols) <= n_obs and max(np.linalg.cond(full[i][:, cols]) for i in range(n)) <= self.max_condition:
+                p_eff = p
+                break
+        if p_eff < 0:
+            raise ValueError(f"POD fit: {n_obs} observed points per frame are too few to fit any field")
+        keep = np.flatnonzero((basis.multi_indices() <= p_eff).all(-1))
+        coeffs = np.zeros((n, T, basis.size, A))
+        for i in range(n):
+            P = full[i][:, keep]  # (Nobs, nb')
+            gram = P.T @ P
+            gram += self.ridge * np.trace(gram) / len(keep) * np.eye(len(keep))
+            rhs = P.T @ vals[i].transpose(1, 0, 2).reshape(n_obs, T * A)
+            coeffs[i][:, keep] = np.linalg.solve(gram, rhs).reshape(len(keep), T, A).transpose(1, 0, 2)
+        S = coeffs.reshape(n * T, basis.size * A)
+        mean = S.mean(0)
+        _, s, Vt = np.linalg.svd(S - mean, full_matrices=False)
+        k = self.latent_dim
+        if len(s) < k:
+            raise ValueError(f"POD fit: only {len(s)} snapshots for {k} modes")
+        self.field.mean.copy_(torch.as_tensor(mean.reshape(basis.size, A)))
+        self.field.modes.copy_(torch.as_tensor(Vt[:k].reshape(k, basis.size, A).transpose(1, 2, 0).copy()))
+        self.field._cache.clear()
+        self.singular_values.copy_(torch.as_tensor(s[:k]))
+        self.fitted.fill_(True)
+        captured = float((s[:k] ** 2).sum() / max((s**2).sum(), 1e-300))
+        log.info("POD: %d modes capture %.6f of the snapshot variance (degree %d of %d per axis, %d snapshots)",
+                 k, captured, p_eff, basis.degree, n * T)
+        return {"pod_energy_captured": captured, "pod_degree": float(p_eff)}
+
+    def extra_repr(self) -> str:
+        return f"{super().extra_repr()}, modes={self.latent_dim}, degree={self.field.basis.degree}"

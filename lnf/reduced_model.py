@@ -1,0 +1,126 @@
+"""ReducedModel: what every reduced model in lnf shares — an embedding φ, a reduction ρ, and dynamics.
+
+Our model (:class:`lnf.model.LagrangianNeuralField`) and the POD-Galerkin baseline
+(:class:`lnf.baselines.pod.PODGalerkin`) differ only in φ (modulated SIREN or a linear map) and ρ
+(K learned gradient steps or least squares); both pull the scene's Lagrangian back through the same
+:class:`ReducedDynamics` and roll out with the same integrators. Shapes: codes q̃ (B, d); points
+(N, dim_B) or (B, N, dim_B); fields (B, N, A).
+"""
+from __future__ import annotations
+
+from typing import Any, Optional
+
+import torch
+from torch import Tensor, nn
+
+from lnf.dynamics import ReducedDynamics
+from lnf.integrators import Integrator, Trajectory, get_integrator
+from lnf.quadrature import GaussLegendre, Quadrature, QuadratureRule
+from lnf.reduction import project_velocity
+from lnf.scenes.base import Scene
+
+
+def as_field(values: Tensor) -> Tensor:
+    """Accept (B, N) for scalar fields as well as (B, N, A)."""
+    return values.unsqueeze(-1) if values.ndim == 2 else values
+
+
+class ReducedModel(nn.Module):
+    """Base class: `self.field` is φ with ``__call__(codes, points)`` and ``jet(codes, points, order, spatial)``.
+
+    Subclasses implement :meth:`reduce`. `trainable` says whether ``lnf.train`` fits it by gradient descent
+    (else it is fitted in closed form by :meth:`fit_to_observations`, or not at all).
+    """
+
+    trainable: bool = True
+    state_is_field: bool = False  # True for the full-order model: its "codes" are the nodal field itself
+    field: nn.Module
+
+    def __init__(self, scene: Scene, quadrature: Optional[QuadratureRule] = None) -> None:
+        super().__init__()
+        self.scene = scene
+        self.quadrature_rule = quadrature if quadrature is not None else GaussLegendre(12)
+        self.checkpoint: dict[str, Any] = {}
+
+    @property
+    def latent_dim(self) -> int:
+        return self.field.latent_dim
+
+    def reference_tensor(self) -> Tensor:
+        """A parameter or buffer, for the model's dtype and device."""
+        for t in (*self.parameters(), *self.buffers()):
+            return t
+        return torch.zeros(())
+
+    def _density(self, points: Tensor) -> Tensor:
+        return self.scene.density(points)
+
+    # ------------------------------------------------------------------ embedding and reduction
+    def decode(self, codes: Tensor, points: Tensor, chunk: int = 65536) -> Tensor:
+        """φ(q̃, X): codes (B, d), points (N, dim_B) or (B, N, dim_B) → (B, N, A). Chunked over points."""
+        points = points.to(codes)
+        if points.shape[-2] <= chunk:
+            return self.field(codes, points)
+        parts = [self.field(codes, points[..., i:i + chunk, :]) for i in range(0, points.shape[-2], chunk)]
+        return torch.cat(parts, dim=-2)
+
+    def reduce(self, points: Tensor, values: Tensor, steps: Optional[int] = None) -> Tensor:
+        """ρ(q): observed field values (B, N, A) at points → codes (B, d)."""
+        raise NotImplementedError
+
+    def fit_to_observations(self, points: Tensor, values: Tensor) -> dict[str, float]:
+        """Closed-form fit to training observations (n, Nobs, dim_B), (n, T, Nobs, A); for non-trainable models."""
+        raise NotImplementedError(f"{type(self).__name__} is trained by gradient descent, not in closed form")
+
+    def project_velocity(self, codes: Tensor, points: Tensor, velocities: Tensor,
+                         weights: Optional[Tensor] = None) -> Tensor:
+        """q̃̇ = (dφ)^{†,ω0} q̇: velocity field (B, N, A) at points → (B, d).
+
+        `weights` are quadrature weights of the points (N,); uniform (|B|/N) if omitted.
+        """
+        velocities = as_field(velocities)
+        points = points.to(velocities)
+        self._check_observation(points, velocities, "velocities")
+        if weights is None:
+            weights = points.new_full(points.shape[:-1], 1.0 / points.shape[-2])
+        ww = weights.to(velocities) * self._density(points)
+        return project_velocity(self.field.jet(codes, points, order=1).J, ww, velocities)
+
+    def _check_observation(self, points: Tensor, values: Tensor, what: str) -> None:
+        if points.shape[-1] != self.scene.body_dim or points.shape[-2] == 0:
+            raise ValueError(f"points must have shape (N, {self.scene.body_dim}) with N ≥ 1, got {tuple(points.shape)}")
+        if values.ndim != 3 or values.shape[-2] != points.shape[-2] or values.shape[-1] != self.scene.field_dim:
+            raise ValueError(f"{what} must have shape (B, {points.shape[-2]}, {self.scene.field_dim}) to match "
+                             f"points {tuple(points.shape)}, got {tuple(values.shape)}")
+        if not torch.isfinite(values).all():
+            raise ValueError(f"{what} contain NaN or inf")
+
+    # ------------------------------------------------------------------ reduced dynamics
+    def lagrangian_dynamics(self, quadrature: "Quadrature | QuadratureRule | None" = None) -> ReducedDynamics:
+        """The scene's Lagrangian pulled back through φ on `quadrature` (default: the model's rule)."""
+        rule = quadrature if quadrature is not None else self.quadrature_rule
+        quad = rule if isinstance(rule, Quadrature) else rule.build(self.scene.bounds)
+        p = self.reference_tensor()
+        return ReducedDynamics(self.field.jet, self.scene, quad.to(device=p.device, dtype=p.dtype))
+
+    def dynamics(self, quadrature: "Quadrature | QuadratureRule | None" = None) -> Any:
+        """The dynamics that rollouts integrate (the pulled-back Lagrangian unless a subclass says otherwise)."""
+        return self.lagrangian_dynamics(quadrature)
+
+    def rollout(self, q0: Tensor, v0: Tensor, dt: float, steps: int,
+                integrator: "str | Integrator | dict" = "implicit_midpoint", record_every: int = 1,
+                quadrature: "Quadrature | QuadratureRule | None" = None,
+                on_divergence: str = "raise") -> Trajectory:
+        """Integrate the reduced dynamics from (q̃0, q̃̇0) (B, d) for `steps` steps of `dt` [s]."""
+        with torch.no_grad():
+            return get_integrator(integrator).integrate(self.dynamics(quadrature), q0, v0, dt, steps,
+                                                        record_every=record_every, on_divergence=on_divergence)
+
+    def energy(self, q: Tensor, v: Tensor, quadrature: "Quadrature | QuadratureRule | None" = None
+               ) -> tuple[Tensor, Tensor]:
+        """(T̃, Ṽ) of reduced states q̃, q̃̇ (..., d) → each (...): the scene's energy pulled back through φ."""
+        with torch.no_grad():
+            return self.lagrangian_dynamics(quadrature).energies(q, v)
+
+    def extra_repr(self) -> str:
+        return f"scene={self.scene!r}, quadrature={self.quadrature_rule.describe()}"
