@@ -71,7 +71,15 @@ def evaluate(cfg: DictConfig) -> dict[str, float]:
     train_horizon = float(cfg.train_horizon) if cfg.train_horizon is not None else float(split.times[split.train_times])
     times = dt * np.arange(int(round(horizon / dt)))
     stored_times = len(times) == len(split.times) and np.allclose(times, split.times)
-    states = split.states[:n] if stored_times else scene.simulate(split.states[:n, 0], times)
+    if cfg.get("initial_states") is not None:
+        initial = np.asarray(OmegaConf.to_container(cfg.initial_states, resolve=True) if OmegaConf.is_config(
+            cfg.initial_states) else cfg.initial_states, dtype=np.float64)
+        if initial.ndim != 2 or initial.shape[1] != split.states.shape[-1] or not np.isfinite(initial).all():
+            raise ValueError(f"initial_states must be a list of finite full-order states, each of "
+                             f"{split.states.shape[-1]} numbers {tuple(scene.state_names)}, got {initial.tolist()!r}")
+        states, stored_times, n = scene.simulate(initial, times), False, len(initial)
+    else:
+        states = split.states[:n] if stored_times else scene.simulate(split.states[:n, 0], times)
     points, grid_shape = evaluation_points(cfg.grid, scene.bounds, split.fine_points)
     use_stored = stored_times and cfg.grid.kind == "stored"
     quadrature = build(OmegaConf.to_container(cfg.quadrature, resolve=True)) if cfg.get("quadrature") else None

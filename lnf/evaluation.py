@@ -102,7 +102,9 @@ def evaluate_rollouts(
     flat_q = traj.q.reshape(n * T, d)
     finite = torch.isfinite(flat_q).all(-1)
     safe_q = torch.where(finite[:, None], flat_q, torch.zeros_like(flat_q))
+    start = time.perf_counter()
     pred = _chunked(lambda c: model.decode(c, pts), safe_q, snapshot_chunk)
+    decode_seconds = time.perf_counter() - start
     pred = torch.where(finite[:, None, None], pred, float("nan")).reshape(n, T, *pred.shape[1:])
     flat_fields = fields_r.reshape(n * T, *fields_r.shape[2:])
     q_ref = _chunked(lambda f: model.reduce(pts_r, f), flat_fields, snapshot_chunk)
@@ -133,6 +135,10 @@ def evaluate_rollouts(
     metrics["diverged_fraction"] = float(traj.diverged.float().mean())
     metrics["rollout_seconds_per_trajectory"] = rollout_seconds / n
     metrics["rollout_seconds_per_step"] = rollout_seconds / max(T - 1, 1)
+    metrics["decode_seconds_per_trajectory"] = decode_seconds / n  # all T frames on the N evaluation points
+    metrics["frames"] = float(T)
+    metrics["evaluation_points"] = float(len(points))
+    metrics["fields_seconds_per_trajectory"] = (rollout_seconds + decode_seconds) / n  # rollout + decoding
     return RolloutEvaluation(
         metrics=metrics, times=np.asarray(times), q_pred=q_pred_np, q_ref=q_ref_np, pred_fields=pred_np,
         true_fields=true_np, points=np.asarray(points),

@@ -84,7 +84,7 @@ class LagrangianNeuralField(ReducedModel):
         step_size: initial α of the reduction (learned as log α).
         velocity_weight: λ_v of the optional tangent (velocity) reconstruction loss, not in the paper;
             0 gives the paper's loss ℓ^r + ℓ^p exactly (see :meth:`losses`).
-        quadrature: rule for the integrals of the reduced dynamics (default Gauss–Legendre 12×12).
+        quadrature: rule for the integrals of the reduced dynamics (default Gauss–Legendre 8×8).
         dynamics: None (the pulled-back Lagrangian, our model) or a ``_target_`` spec of learned latent
             dynamics, e.g. ``lnf.baselines.latent_mlp.LatentMLPDynamics`` (the black-box baseline; it is
             fitted after the field, on the codes of the training trajectories).

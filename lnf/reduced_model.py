@@ -39,7 +39,7 @@ class ReducedModel(nn.Module):
     def __init__(self, scene: Scene, quadrature: Optional[QuadratureRule] = None) -> None:
         super().__init__()
         self.scene = scene
-        self.quadrature_rule = quadrature if quadrature is not None else GaussLegendre(12)
+        self.quadrature_rule = quadrature if quadrature is not None else GaussLegendre(8)
         self.checkpoint: dict[str, Any] = {}
 
     @property

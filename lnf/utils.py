@@ -13,7 +13,7 @@ SUMMARY_KEYS = [
     "field_rel_l2/all/median", "field_rel_l2/in_horizon/median", "field_rel_l2/extrapolation/median",
     "field_rel_l2/all/max", "projection_rel_l2/all/median", "latent_rmse/median", "energy_rel_err/max",
     "energy_drift/max", "energy_drift_long/max", "vpt/median", "rollout_seconds_per_trajectory",
-    "rollout_seconds_per_step", "train_seconds", "total_seconds",
+    "rollout_seconds_per_step", "fields_seconds_per_trajectory", "train_seconds", "total_seconds",
 ]
 
 

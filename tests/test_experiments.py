@@ -27,3 +27,113 @@ def test_probe_settings_reports_json():
     report = json.loads(out)
     assert report["steps"] >= 1 and 0 <= report["ring_share_of_sq_error"] <= 1
     assert len(report["eps_along_codes"]) == 7
+
+
+# ---------------------------------------------------------------------------------------------------
+# the benchmark studies (issue 3), each with --smoke settings, sharing one output folder
+# ---------------------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def studies(tmp_path_factory):
+    return tmp_path_factory.mktemp("studies")
+
+
+def _study(name, folder, *extra):
+    import os
+
+    env = {**os.environ, "LNF_DATA_DIR": str(folder / "data")}
+    out = folder / f"{name}-smoke"
+    proc = subprocess.run([sys.executable, f"experiments/{name}.py", "--smoke", "--threads", "1", "--out", str(out),
+                           *extra], cwd=ROOT, capture_output=True, text=True, timeout=600, env=env)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    return out, proc.stdout
+
+
+def _csv(path):
+    import csv
+
+    with open(path) as fh:
+        return list(csv.DictReader(fh))
+
+
+def _methods(rows):
+    sys.path.insert(0, str(ROOT / "experiments"))
+    import studylib
+
+    return {studylib.method_of(r) for r in rows}
+
+
+def test_pareto_study_smoke(studies):
+    out, stdout = _study("pareto", studies)
+    rows = _csv(out / "pareto.csv")
+    assert _methods(rows) == {"lnf", "latent_mlp", "pod", "full_order"}
+    assert {r["knob"] for r in rows} >= {"width", "k", "resolution", "quadrature", "integrator"}
+    for name in ("pareto.png", "quadrature.png", "summary.md"):
+        assert (out / name).stat().st_size > 0
+    assert "Black-box points dominated" in (out / "summary.md").read_text()
+    # rerunning reuses every finished sweep instead of training again
+    _, again = _study("pareto", studies)
+    assert "reusing" in again and "done in" not in again
+
+
+def test_stability_study_smoke(studies):
+    out, _ = _study("stability", studies)
+    rows = _csv(out / "stability.csv")
+    assert _methods(rows) == {"lnf", "latent_mlp", "pod", "full_order"}
+    assert {r["study"] for r in rows} >= {"long", "high_energy", "dt", "resolution"}
+    # the black box has no Hamiltonian: it is only integrated with RK4
+    assert {r["integrator_name"] for r in rows if r.get("method") == "latent_mlp" and r["study"] != "train"} == {"rk4"}
+    assert (out / "stability.png").stat().st_size > 0 and "largest ok dt" in (out / "summary.md").read_text()
+
+
+def test_cost_scaling_study_smoke_reuses_the_stability_models(studies):
+    out, stdout = _study("cost_scaling", studies)
+    assert "reusing" in stdout
+    rows = _csv(out / "cost_scaling.csv")
+    assert _methods(rows) == {"lnf", "latent_mlp", "pod", "full_order"}
+    assert {r["sweep"] for r in rows} == {"points", "batch"}
+    assert all(float(r["rollout_seconds"]) > 0 and float(r["decode_peak_mib"]) >= 0 for r in rows)
+
+
+def test_sparse_noisy_study_smoke(studies):
+    out, _ = _study("sparse_noisy", studies)
+    rows = _csv(out / "sparse_noisy.csv")
+    assert _methods(rows) == {"lnf", "latent_mlp", "pod", "full_order"}
+    assert {r["data.observed_fraction"] for r in rows if r.get("knob") == "fraction"} == {"0.5", "0.25"}
+    assert (out / "sparse_noisy.png").stat().st_size > 0
+
+
+def test_model_size_study_smoke(studies):
+    out, stdout = _study("model_size", studies)
+    rows = _csv(out / "model_size.csv")
+    ours = [r for r in rows if r["method"] == "lnf"]
+    assert {(r["model.latent_dim"], r["model.width"]) for r in ours} == {("1", "8"), ("1", "16"), ("2", "8"), ("2", "16")}
+    assert _methods(rows) == {"lnf", "latent_mlp", "pod", "full_order"}
+    assert "choice: d = 1" in stdout  # the smoke target (10) is met at d = 1 (a 1-epoch width-8 model may miss it)
+
+
+def test_roofline_study_smoke(studies):
+    out, stdout = _study("roofline", studies)
+    rows = _csv(out / "roofline.csv")
+    assert len(rows) == 7 and all(float(r["ratio"]) > 0 for r in rows)
+    assert _methods(rows) == {"lnf", "latent_mlp", "pod", "full_order"}
+    assert (out / "roofline.png").stat().st_size > 0
+
+
+def test_pareto_mask_and_study_choices():
+    sys.path.insert(0, str(ROOT / "experiments"))
+    import numpy as np
+    import studylib
+    from model_size import choose
+    from stability import failure_dt
+
+    mask = studylib.pareto_mask(np.array([1, 2, 3, 4, np.nan]), np.array([5, 3, 4, 1, 0]))
+    assert mask.tolist() == [True, True, False, True, False]
+    assert studylib.dominates(np.array([1.0, 2.0]), np.array([0.5, 0.1]), 2.0, 0.2)
+    assert not studylib.dominates(np.array([1.0, 2.0]), np.array([0.5, 0.1]), 1.5, 0.2)
+    rows = [{"dt": 0.05, "field_rel_l2/all/median": 0.01}, {"dt": 0.1, "field_rel_l2/all/median": 0.04},
+            {"dt": 0.2, "field_rel_l2/all/median": 0.06}, {"dt": 0.4, "field_rel_l2/all/median": 0.01,
+                                                         "diverged_fraction": 0.5}]
+    assert failure_dt(rows) == 0.1  # 0.06 > max(2 × 0.01, 0.05)
+    runs = [{"model.latent_dim": d, "model.width": w, "field_rel_l2/all/median": e}
+            for d, w, e in [(1, 16, 0.3), (1, 32, 0.08), (1, 64, 0.05), (2, 16, 0.09), (2, 32, 0.04)]]
+    assert choose(runs, 0.1) == runs[1] and choose(runs, 0.045) == runs[4] and choose(runs, 0.01) is None

@@ -90,6 +90,16 @@ def test_evaluate_rejects_empty_grid(trained, tmp_path):
         evaluate(ecfg)
 
 
+def test_evaluate_from_given_initial_states(trained, tmp_path):
+    _, cfg, _ = trained
+    ckpt = Path(cfg.paths.output_dir) / "checkpoints" / "last.ckpt"
+    metrics = evaluate(compose_config("evaluate", [f"ckpt_path={ckpt}", "initial_states=[[2.8,0.0],[0.0,7.0]]",
+                                                   "figures=0"], tmp_path))
+    assert "field_rel_l2/all/median" in metrics
+    with pytest.raises(ValueError, match="initial_states must be a list of finite full-order states, each of 2"):
+        evaluate(compose_config("evaluate", [f"ckpt_path={ckpt}", "initial_states=[[2.8]]"], tmp_path))
+
+
 def test_load_errors(tmp_path):
     with pytest.raises(FileNotFoundError, match="checkpoint not found"):
         lnf.load(tmp_path / "missing.ckpt")

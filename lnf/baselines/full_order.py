@@ -116,22 +116,39 @@ class FullOrderModel(ReducedModel):
         return out[:, :, 0].transpose(1, 2)  # (B, N', A)
 
     def reduce(self, points: Tensor, values: Tensor, steps: Optional[int] = None) -> Tensor:
-        """Nodal values of an observed field: as they are on the nodes, else interpolated (scipy, cubic)."""
+        """Nodal values of observed fields (B, N, A): as they are on the nodes, else interpolated
+        (scipy Clough–Tocher, cubic; nearest outside the points' hull), all B fields at once."""
         values = as_field(values)
         self._check_observation(points, values, "values")
         if self._on_nodes(points):
             return values.reshape(values.shape[0], -1)
         if points.ndim != 2:
             raise ValueError(f"full-order reduce needs shared points (N, dim_B), got {tuple(points.shape)}")
-        from scipy.interpolate import griddata
+        from scipy.interpolate import CloughTocher2DInterpolator, NearestNDInterpolator
 
-        pts, nodes = points.double().cpu().numpy(), self.nodes.double().cpu().numpy()
-        out = []
-        for v in values.double().cpu().numpy():
-            cubic = griddata(pts, v, nodes, method="cubic")
-            nearest = griddata(pts, v, nodes, method="nearest")
-            out.append(np.where(np.isfinite(cubic), cubic, nearest))
-        return torch.as_tensor(np.stack(out), dtype=values.dtype, device=values.device).reshape(values.shape[0], -1)
+        tri = self._triangulation(points)
+        B, N, A = values.shape
+        cols = values.double().cpu().numpy().transpose(1, 0, 2).reshape(N, B * A)
+        nodes = self.nodes.double().cpu().numpy()
+        out = CloughTocher2DInterpolator(tri, cols)(nodes)
+        bad = ~np.isfinite(out).all(-1)
+        if bad.any():
+            out[bad] = NearestNDInterpolator(tri.points, cols)(nodes[bad])
+        out = out.reshape(-1, B, A).transpose(1, 0, 2)
+        return torch.as_tensor(out, dtype=values.dtype, device=values.device).reshape(B, -1)
+
+    def _triangulation(self, points: Tensor) -> Any:
+        """Delaunay triangulation of the observation points, cached (the same points recur for every frame)."""
+        from scipy.spatial import Delaunay
+
+        if self.scene.body_dim != 2:
+            raise NotImplementedError("interpolating observations onto the full-order nodes is implemented for 2-D bodies")
+        key = (points.data_ptr(), tuple(points.shape), points._version)
+        cache = self.__dict__.setdefault("_tri_cache", {})
+        if key not in cache:
+            cache.clear()
+            cache[key] = Delaunay(points.double().cpu().numpy())
+        return cache[key]
 
     def project_velocity(self, codes: Tensor, points: Tensor, velocities: Tensor,
                          weights: Optional[Tensor] = None) -> Tensor:

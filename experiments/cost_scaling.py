@@ -1,0 +1,192 @@
+"""Cost scaling: rollout time and peak memory against evaluation points and trajectories rolled out at once.
+
+    python experiments/cost_scaling.py          # models of the reduced stability study (trained if missing)
+    python experiments/cost_scaling.py --full   # models of the full stability study
+
+For each method (our model, the black-box latent MLP, POD-Galerkin k = 1, the full-order model) and
+each evaluation grid 16² … 256² (16 trajectories), then each batch of 1 … 64 trajectories (64² grid):
+the latent rollout of 100 steps (dt = 0.05 s, each method's default integrator; the faster of two runs), the decoding of the
+100 frames on the grid, and the peak resident memory above the level before the call (sampled every
+millisecond). The reduced rollout does not touch the evaluation grid, so its cost must stay flat
+while decoding grows; the full-order model's state is the grid itself (it is rebuilt at each
+resolution), so its rollout grows with it. Writes cost_scaling.csv, cost_scaling.png and summary.md
+into outputs/studies/cost_scaling/.
+"""
+from __future__ import annotations
+
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import stability  # noqa: E402
+import studylib as S  # noqa: E402
+
+
+class PeakRSS:
+    """Peak resident set size above the level at entry [bytes], sampled every `interval` seconds."""
+
+    def __init__(self, interval: float = 1e-3) -> None:
+        self.interval, self.peak, self._stop = interval, 0, threading.Event()
+
+    @staticmethod
+    def rss() -> int:
+        with open("/proc/self/statm") as fh:
+            return int(fh.read().split()[1]) * 4096
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            self.peak = max(self.peak, self.rss() - self.base)
+            time.sleep(self.interval)
+
+    def __enter__(self) -> "PeakRSS":
+        self.base = self.rss()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._stop.set()
+        self._thread.join()
+        self.peak = max(self.peak, self.rss() - self.base)
+
+
+def measure(model, scene, integrator: str, resolution: int, batch: int, steps: int, seed: int = 0) -> dict:
+    import torch
+
+    from lnf.evaluation import reduction_subset
+    from lnf.quadrature import midpoint_grid
+
+    rng = np.random.default_rng(seed)
+    states0 = scene.sample_initial_states(batch, rng)
+    grid = midpoint_grid(resolution, scene.bounds).float()
+    sub = torch.as_tensor(reduction_subset(len(grid), (resolution,) * 2,
+                                           None if model.state_is_field else 1024))
+    q_true, v_true = scene.fields(states0, grid[sub].numpy())
+    with torch.no_grad():
+        t0 = time.perf_counter()
+        q0 = model.reduce(grid[sub], torch.as_tensor(q_true, dtype=torch.float32))
+        v0 = model.project_velocity(q0, grid[sub], torch.as_tensor(v_true, dtype=torch.float32))
+        reduce_s = time.perf_counter() - t0
+        model.rollout(q0, v0, dt=0.05, steps=2, integrator=integrator, on_divergence="mark")  # warm-up
+        rollout_s = float("inf")
+        for _ in range(2):  # the faster of two runs: the first full rollout of a process carries one-off costs
+            with PeakRSS() as mem_roll:
+                t0 = time.perf_counter()
+                traj = model.rollout(q0, v0, dt=0.05, steps=steps, integrator=integrator, on_divergence="mark")
+                rollout_s = min(rollout_s, time.perf_counter() - t0)
+        codes = torch.nan_to_num(traj.q.reshape(-1, traj.q.shape[-1]))
+        with PeakRSS() as mem_dec:
+            t0 = time.perf_counter()
+            for i in range(0, codes.shape[0], 32):
+                model.decode(codes[i:i + 32], grid)
+            decode_s = time.perf_counter() - t0
+    return {"points": resolution**2, "resolution": resolution, "batch": batch, "steps": steps,
+            "reduce_seconds": reduce_s, "rollout_seconds": rollout_s, "rollout_seconds_per_step": rollout_s / steps,
+            "decode_seconds": decode_s, "total_seconds": rollout_s + decode_s,
+            "rollout_peak_mib": mem_roll.peak / 2**20, "decode_peak_mib": mem_dec.peak / 2**20,
+            "diverged_fraction": float(traj.diverged.float().mean())}
+
+
+def run(study: S.Study, ckpts: dict) -> list[dict]:
+    import torch
+
+    import lnf
+    from lnf.baselines import FullOrderModel
+    from lnf.quadrature import midpoint_grid
+
+    torch.set_num_threads(study.threads)
+    smoke = study.mode == "smoke"
+    resolutions = [8, 16] if smoke else [16, 32, 64, 128, 256]
+    batches = [1, 2] if smoke else [1, 4, 16, 64]
+    steps = 5 if smoke else 100
+    rows = []
+    for m, ckpt in ckpts.items():
+        model = lnf.load(ckpt)
+        if m != "full_order":  # steady state: a fresh process runs the same rollout 2.5× slower until a large
+            with torch.no_grad():  # block has been freed (glibc's dynamic mmap threshold), whatever the grid
+                model.decode(torch.zeros(32, model.latent_dim), midpoint_grid(128, model.scene.bounds))
+        integ = stability.INTEGRATORS[m][0]
+        for r in resolutions:
+            mod = FullOrderModel(model.scene, resolution=r) if m == "full_order" else model
+            rows.append({"method": m, "integrator": integ, "sweep": "points",
+                         **measure(mod, model.scene, integ, r, 2 if smoke else 16, steps)})
+            print(f"[cost_scaling] {m:>10} {r:>4}²: rollout {rows[-1]['rollout_seconds']:.3f} s, decode "
+                  f"{rows[-1]['decode_seconds']:.3f} s, peak {rows[-1]['decode_peak_mib']:.0f} MiB", flush=True)
+        for b in batches:
+            rows.append({"method": m, "integrator": integ, "sweep": "batch",
+                         **measure(model, model.scene, integ, 8 if smoke else 64, b, steps)})
+            print(f"[cost_scaling] {m:>10} B={b:>3}: rollout {rows[-1]['rollout_seconds']:.3f} s", flush=True)
+    return rows
+
+
+def plot(study: S.Study, rows: list[dict]) -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 3, figsize=(17, 4.8))
+    for m in S.METHODS:
+        pts = sorted((r for r in rows if r["method"] == m and r["sweep"] == "points"), key=lambda r: r["points"])
+        bat = sorted((r for r in rows if r["method"] == m and r["sweep"] == "batch"), key=lambda r: r["batch"])
+        if not pts:
+            continue
+        x = [r["points"] for r in pts]
+        axes[0].plot(x, [r["rollout_seconds"] for r in pts], "-", marker=S.MARKERS[m], color=S.COLORS[m],
+                     label=f"{S.LABELS[m]}: rollout (100 steps)")
+        axes[0].plot(x, [r["decode_seconds"] for r in pts], ":", marker=S.MARKERS[m], color=S.COLORS[m],
+                     label=f"{S.LABELS[m]}: decoding (100 frames)")
+        axes[1].plot(x, [max(r["rollout_peak_mib"], r["decode_peak_mib"]) for r in pts], "-", marker=S.MARKERS[m],
+                     color=S.COLORS[m], label=S.LABELS[m])
+        axes[2].plot([r["batch"] for r in bat], [r["rollout_seconds"] / r["batch"] for r in bat], "-",
+                     marker=S.MARKERS[m], color=S.COLORS[m], label=S.LABELS[m])
+    axes[0].set_xlabel("evaluation points (16 trajectories)")
+    axes[0].set_ylabel("wall-clock [s]")
+    axes[1].set_xlabel("evaluation points (16 trajectories)")
+    axes[1].set_ylabel("peak memory above baseline [MiB] (RSS, 1 ms sampling)")
+    axes[2].set_xlabel("trajectories rolled out at once (64² grid)")
+    axes[2].set_ylabel("rollout wall-clock per trajectory [s] (100 steps)")
+    for ax in axes:
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=6)
+    fig.suptitle(f"Cost scaling, {study.scene} — {S.caption(study, 'python experiments/cost_scaling.py')}", fontsize=9)
+    return S.save_figure(fig, study.out / "cost_scaling.png")
+
+
+def summary(study: S.Study, rows: list[dict]) -> Path:
+    lines = [f"# Cost scaling ({study.scene}, {study.mode} settings)\n\n",
+             f"Machine: {study.machine()}. Command: `python experiments/cost_scaling.py"
+             f"{'' if study.mode == 'reduced' else ' --' + study.mode}`.\n\n"]
+    for m in S.METHODS:
+        pts = sorted((r for r in rows if r["method"] == m and r["sweep"] == "points"), key=lambda r: r["points"])
+        if pts:
+            per_step = [r["rollout_seconds_per_step"] for r in pts]
+            lines.append(f"- {S.LABELS[m]}: rollout per step from {pts[0]['resolution']}² to {pts[-1]['resolution']}²: "
+                         f"{S.fmt(per_step[0] * 1e3)} → {S.fmt(per_step[-1] * 1e3)} ms (max/min {max(per_step) / min(per_step):.2f}); "
+                         f"decoding {S.fmt(pts[0]['decode_seconds'])} → {S.fmt(pts[-1]['decode_seconds'])} s.\n")
+    cols = [("method", "method"), ("sweep", "sweep"), ("points", "points"), ("batch", "trajectories"),
+            ("rollout_seconds", "rollout s"), ("rollout_seconds_per_step", "s/step"), ("decode_seconds", "decode s"),
+            ("rollout_peak_mib", "rollout peak MiB"), ("decode_peak_mib", "decode peak MiB")]
+    lines.append("\n" + S.markdown_table(rows, cols))
+    return S.write_text_atomic(study.out / "summary.md", "".join(lines))
+
+
+def main(argv=None) -> None:
+    study, _ = S.parse_args("cost_scaling", __doc__, argv)
+    # the models of the stability study (same settings; reused if it already ran)
+    trainer = S.Study(name="stability", scene=study.scene, mode=study.mode, threads=study.threads,
+                      out=study.out.parent / study.out.name.replace("cost_scaling", "stability"))
+    ckpts = stability.train_all(trainer)
+    rows = run(study, ckpts)
+    csv_path = study.write_csv("cost_scaling.csv", rows)
+    study.finish([csv_path, plot(study, rows), summary(study, rows)])
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,120 @@
+"""Model no more than a scene needs: the smallest latent dimension and network that meet an accuracy target.
+
+    python experiments/model_size.py                     # reduced: d ∈ {1, 2}, width ∈ {16, 32, 64}, target 0.10
+    python experiments/model_size.py --full --target 0.02 # d ∈ {1, 2, 3}, width ∈ {32 … 256}, default training
+    python experiments/model_size.py --scene <scene> --target 0.05
+
+A Hydra multirun of `python -m lnf.train` over `model.latent_dim` × `model.width`. The choice is the
+smallest d for which some width meets the target on the test `field_rel_l2` (all, median), then the
+smallest width at that d; it is reported with its cost (training and rollout wall-clock). Writes
+model_size.csv, model_size.png and summary.md into outputs/studies/model_size/.
+"""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import studylib as S  # noqa: E402
+
+ERR = "field_rel_l2/all/median"
+
+
+def choose(rows: list[dict], target: float) -> Optional[dict]:
+    """Smallest latent dimension with a run meeting `target`, then the smallest width at that dimension."""
+    ok = [r for r in rows if np.isfinite(float(r[ERR])) and float(r[ERR]) <= target]
+    if not ok:
+        return None
+    d = min(int(r["model.latent_dim"]) for r in ok)
+    return min((r for r in ok if int(r["model.latent_dim"]) == d), key=lambda r: int(r["model.width"]))
+
+
+def plot(study: S.Study, rows: list[dict], others: list[dict], target: float, chosen: Optional[dict]) -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (ax, ax2) = plt.subplots(1, 2, figsize=(12, 4.5))
+    pod = sorted((r for r in others if r["method"] == "pod"), key=lambda r: int(r["model.latent_dim"]))
+    ax2.plot([int(r["model.latent_dim"]) for r in pod], [float(r[ERR]) for r in pod], marker=S.MARKERS["pod"],
+             color=S.COLORS["pod"], label=S.LABELS["pod"])
+    for m in ("latent_mlp", "full_order"):
+        for r in (r for r in others if r["method"] == m):
+            ax2.axhline(float(r[ERR]), color=S.COLORS[m], ls=":",
+                        label=f"{S.LABELS[m]}" + (f" (d = {r['model.latent_dim']}, width {r['model.width']})"
+                                                  if m == "latent_mlp" else " (64² grid)"))
+    if chosen:
+        ax2.axhline(float(chosen[ERR]), color=S.COLORS["lnf"], ls="-", label=f"LNF (ours), choice")
+    ax2.axhline(target, color="k", ls="--", label=f"target {target:g}")
+    ax2.set_yscale("log")
+    ax2.set_xlabel("latent dimension d (POD: number of modes k)")
+    ax2.set_ylabel("test field_rel_l2 (all), median")
+    ax2.grid(True, which="both", alpha=0.3)
+    ax2.legend(fontsize=7)
+    ax2.set_title("Baselines at the same target", fontsize=9)
+    for d in sorted({int(r["model.latent_dim"]) for r in rows}):
+        sel = sorted((r for r in rows if int(r["model.latent_dim"]) == d), key=lambda r: int(r["model.width"]))
+        ax.plot([int(r["model.width"]) for r in sel], [float(r[ERR]) for r in sel], marker="o", label=f"latent d = {d}")
+    ax.axhline(target, color="k", ls="--", label=f"target {target:g}")
+    if chosen:
+        ax.scatter([int(chosen["model.width"])], [float(chosen[ERR])], s=250, facecolors="none", edgecolors="r", lw=2,
+                   label=f"choice: d = {chosen['model.latent_dim']}, width {chosen['model.width']}")
+    ax.set_xscale("log", base=2)
+    ax.set_yscale("log")
+    ax.set_xlabel("SIREN width")
+    ax.set_ylabel("test field_rel_l2 (all), median")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8)
+    ax.set_title(f"Model size, {study.scene} — {study.mode} settings", fontsize=9)
+    return S.save_figure(fig, study.out / "model_size.png")
+
+
+def main(argv=None) -> None:
+    def extra(p):
+        p.add_argument("--target", type=float, default=None,
+                       help="accuracy target on test field_rel_l2 (default 0.10 reduced, 0.02 full)")
+
+    study, args = S.parse_args("model_size", __doc__, argv, extra)
+    target = args.target if args.target is not None else {"reduced": 0.10, "full": 0.02, "smoke": 10.0}[study.mode]
+    dims, widths = {"smoke": ("1,2", "8,16"), "reduced": ("1,2", "16,32,64"),
+                    "full": ("1,2,3", "32,64,128,256")}[study.mode]
+    rows = study.multirun("search", study.method("lnf", [f"model.latent_dim={dims}", f"model.width={widths}"]),
+                          label={"method": "lnf"})
+    chosen = choose(rows, target)
+    # the baselines at the same question: POD's number of modes, the black box at the chosen size, the full-order model
+    modes = "1,2" if study.mode == "smoke" else "1,2,3,4"
+    pod = study.multirun("pod_modes", study.method("pod", [f"model.latent_dim={modes}"]), label={"method": "pod"})
+    others = list(pod)
+    if chosen is not None:
+        others += study.multirun("latent_mlp_choice", study.method("latent_mlp", [
+            f"model.latent_dim={chosen['model.latent_dim']}", f"model.width={chosen['model.width']}"]),
+            label={"method": "latent_mlp"})
+    others += study.multirun("full_order", study.method("full_order"), label={"method": "full_order"})
+    pod_ok = [r for r in pod if float(r[ERR]) <= target]
+    csv_path = study.write_csv("model_size.csv")
+    cols = [("model.latent_dim", "d"), ("model.width", "width"), (ERR, "field_rel_l2"),
+            ("field_rel_l2/extrapolation/median", "extrapolation"), ("train_seconds", "train s"),
+            ("rollout_seconds_per_trajectory", "rollout s/traj"), ("fields_seconds_per_trajectory", "rollout+decode s/traj")]
+    verdict = ("no setting met the target" if chosen is None else
+               f"choice: **d = {chosen['model.latent_dim']}, width {chosen['model.width']}** "
+               f"(field_rel_l2 {S.fmt(chosen[ERR])}, training {S.fmt(chosen['train_seconds'])} s, rollout "
+               f"{S.fmt(chosen['rollout_seconds_per_trajectory'])} s per trajectory)")
+    pod_verdict = (f"POD-Galerkin meets the target from k = {min(int(r['model.latent_dim']) for r in pod_ok)} modes."
+                   if pod_ok else "POD-Galerkin does not meet the target with the modes tried.")
+    text = (f"# Model size ({study.scene}, {study.mode} settings, target field_rel_l2 ≤ {target:g})\n\n"
+            f"Machine: {study.machine()}. Command: `python experiments/model_size.py"
+            f"{'' if study.mode == 'reduced' else ' --' + study.mode} --target {target:g}`.\n\n{verdict}\n\n"
+            f"{pod_verdict}\n\n"
+            + S.markdown_table(sorted(rows, key=lambda r: (int(r["model.latent_dim"]), int(r["model.width"]))), cols)
+            + "\nBaselines:\n\n" + S.markdown_table(others, [("method", "method")] + cols))
+    summary = S.write_text_atomic(study.out / "summary.md", text)
+    print(verdict.replace("**", ""))
+    study.finish([csv_path, plot(study, rows, others, target, chosen), summary])
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,91 @@
+"""Sparse and noisy observations in training, for our model and the baselines, measured in one run.
+
+    python experiments/sparse_noisy.py          # reduced: 25 %, 5 %, 1 % of the grid; noise 0, 5 %, 10 % (< 30 min)
+    python experiments/sparse_noisy.py --full   # 25 %, 10 %, 5 %, 1 %; noise 0, 1 %, 5 %, 10 %; default model size
+
+Hydra multiruns of `python -m lnf.train` over `data.observed_fraction` (the share of the 32×32 coarse grid
+each training trajectory observes) and `data.noise` (Gaussian noise on the observed training values and
+velocities, std relative to their RMS). The test protocol is unchanged (clean initial fields on the
+64×64 grid). The full-order model learns nothing from data and is shown once, as the reference.
+Writes sparse_noisy.csv, sparse_noisy.png and summary.md into outputs/studies/sparse_noisy/.
+"""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import studylib as S  # noqa: E402
+
+ERR = "field_rel_l2/all/median"
+
+
+def sweeps(study: S.Study) -> None:
+    smoke, full = study.mode == "smoke", study.mode == "full"
+    fractions = "0.5,0.25" if smoke else "0.25,0.1,0.05,0.01" if full else "0.25,0.05,0.01"
+    noises = "0.1" if smoke else "0.01,0.05,0.1" if full else "0.05,0.1"
+    for m in ("lnf", "latent_mlp", "pod"):
+        study.multirun(f"{m}_fraction", study.method(m, [f"data.observed_fraction={fractions}"]),
+                       label={"method": m, "knob": "fraction"})
+        study.multirun(f"{m}_noise", study.method(m, ["data.observed_fraction=0.25", f"data.noise={noises}"]),
+                       label={"method": m, "knob": "noise"})
+    study.multirun("full_order", study.method("full_order"), label={"method": "full_order", "knob": "reference"})
+
+
+def plot(study: S.Study, rows: list[dict]) -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))
+    for ax, knob, key, xlabel in [(axes[0], "fraction", "data.observed_fraction", "observed share of the 32×32 grid"),
+                                  (axes[1], "noise", "data.noise", "observation noise (std / RMS)")]:
+        for m in ("lnf", "latent_mlp", "pod"):
+            sel = [r for r in rows if r["method"] == m and r["knob"] == knob]
+            if knob == "noise":  # noise 0 is the 25 % point of the fraction sweep
+                sel += [dict(r, **{"data.noise": 0.0}) for r in rows if r["method"] == m and r["knob"] == "fraction"
+                        and float(r["data.observed_fraction"]) == 0.25]
+            sel = sorted(sel, key=lambda r: float(r[key]))
+            x = np.array([float(r[key]) for r in sel])
+            y = np.array([float(r[ERR]) for r in sel])
+            yy = np.where(np.isfinite(y), y, 10.0)
+            ax.plot(x if knob == "fraction" else x + 1e-3, yy, marker=S.MARKERS[m], color=S.COLORS[m], label=S.LABELS[m])
+            bad = ~np.isfinite(y) | np.array([float(r.get("diverged_fraction", 0)) > 0 for r in sel], bool)
+            ax.scatter((x if knob == "fraction" else x + 1e-3)[bad], yy[bad], marker="x", s=80, color="k", zorder=4)
+        ref = [r for r in rows if r["method"] == "full_order"]
+        if ref:
+            ax.axhline(float(ref[0][ERR]), color=S.COLORS["full_order"], ls="--", label="full order (no training data)")
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlabel(xlabel + (" (+0.001 so that 0 shows)" if knob == "noise" else ""))
+        ax.set_ylabel("test field_rel_l2 (all), median")
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=7)
+    fig.suptitle(f"Sparse and noisy training data, {study.scene} — {S.caption(study, 'python experiments/sparse_noisy.py')}"
+                 " (× = diverged)", fontsize=9)
+    return S.save_figure(fig, study.out / "sparse_noisy.png")
+
+
+def summary(study: S.Study, rows: list[dict]) -> Path:
+    cols = [("method", "method"), ("data.observed_fraction", "observed share"), ("data.noise", "noise"),
+            (ERR, "field_rel_l2"), ("field_rel_l2/extrapolation/median", "extrapolation"),
+            ("projection_rel_l2/all/median", "projection"), ("energy_rel_err/max", "energy err"),
+            ("diverged_fraction", "diverged"), ("train_seconds", "train s")]
+    text = (f"# Sparse and noisy observations ({study.scene}, {study.mode} settings)\n\n"
+            f"Machine: {study.machine()}. Command: `python experiments/sparse_noisy.py"
+            f"{'' if study.mode == 'reduced' else ' --' + study.mode}`.\n\n" + S.markdown_table(rows, cols))
+    return S.write_text_atomic(study.out / "summary.md", text)
+
+
+def main(argv=None) -> None:
+    study, _ = S.parse_args("sparse_noisy", __doc__, argv)
+    sweeps(study)
+    csv_path = study.write_csv("sparse_noisy.csv")
+    study.finish([csv_path, plot(study, study.rows), summary(study, study.rows)])
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,244 @@
+"""Stability where methods fail: long horizons, high energy, large time steps, resolution transfer.
+
+    python experiments/stability.py           # reduced settings (< 30 min on 2 CPU cores)
+    python experiments/stability.py --full    # default model size and training budget
+
+Trains each method once with `python -m lnf.train` (our model, the black-box latent MLP, POD-Galerkin
+with k = 1, the full-order model on the 64×64 grid), then re-evaluates each checkpoint with Hydra
+multiruns of `python -m lnf.evaluate`:
+
+- long horizons: 20× and 200× the training horizon (50 s and 500 s at a 0.05 s step), energy drift and
+  vpt per method and integrator (200×: sampled every 0.5 s, integrated at 0.05 s);
+- high energy: θ0 = 0.5π (edge of the training range) … 0.99π at rest, and one rotating pendulum above
+  the separatrix (θ0 = 0, θ̇0 = 7 rad/s);
+- large time steps: dt = 0.05 … 0.8 s until each method and integrator fails (a trajectory diverges, or
+  its error exceeds max(2 × its own dt = 0.05 error, 0.05));
+- resolution transfer: trained on 25 % of 32×32, evaluated on 16², 64², 128² and 4096 random points.
+
+A run that diverges is a data point (marked ×), not a crash. Writes stability.csv, stability.png and
+summary.md into outputs/studies/stability/.
+"""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import studylib as S  # noqa: E402
+
+INTEGRATORS = {"lnf": ["implicit_midpoint", "rk4"], "latent_mlp": ["rk4"], "pod": ["implicit_midpoint", "rk4"],
+               "full_order": ["implicit_midpoint", "rk4"]}
+SHORT = {"implicit_midpoint": "midpoint-4", "rk4": "RK4"}
+HIGH_ENERGY = [[0.5, 0.0], [0.7, 0.0], [0.85, 0.0], [0.95, 0.0], [0.99, 0.0]]  # θ0 in units of π, θ̇0
+ROTATION = [0.0, 7.0]
+
+
+def train_all(study: S.Study) -> dict[str, Path]:
+    ckpts = {}
+    for m in S.METHODS:
+        rows = study.multirun(f"train_{m}", study.method(m), label={"method": m, "study": "train"})
+        ckpts[m] = S.ROOT / rows[0]["dir"] / "checkpoints" / "last.ckpt"
+    return ckpts
+
+
+def evaluations(study: S.Study, ckpts: dict[str, Path]) -> None:
+    """One multirun per (question, integrator), sweeping the checkpoints of every method that integrator applies to."""
+    smoke = study.mode == "smoke"
+    by_path = {str(p): m for m, p in ckpts.items()}
+    before = len(study.rows)
+    for integ in ("implicit_midpoint", "rk4"):
+        paths = ",".join(str(ckpts[m]) for m in S.METHODS if integ in INTEGRATORS[m])
+        common = [f"ckpt_path={paths}", "figures=0", f"threads={study.threads}", f"integrator={integ}"]
+        lab = {"integrator_name": integ}
+        # long horizons (20× and 200× the 2.5 s training horizon)
+        h20, h200 = ("1.0", "2.0") if smoke else ("50", "500")
+        study.multirun(f"long20_{integ}", [*common, f"horizon={h20}", "dt=0.05", "max_trajectories=4",
+                                           "grid.kind=uniform", "grid.resolution=32"], "lnf.evaluate",
+                       {**lab, "study": "long", "horizon_factor": 20})
+        if not smoke:
+            study.multirun(f"long200_{integ}", [*common, f"horizon={h200}", "dt=0.5", "integrator.substeps=10",
+                                                "max_trajectories=4", "grid.kind=uniform", "grid.resolution=32"],
+                           "lnf.evaluate", {**lab, "study": "long", "horizon_factor": 200})
+        # high energy and beyond the training range
+        ics = HIGH_ENERGY[:2] if smoke else HIGH_ENERGY
+        states = ",".join(f"[[{th * np.pi:.6f},{om}]]" for th, om in ics)
+        study.multirun(f"energy_{integ}", [*common, f"initial_states={states}"], "lnf.evaluate",
+                       {**lab, "study": "high_energy"})
+        if not smoke:
+            study.multirun(f"rotation_{integ}", [*common, f"initial_states=[[{ROTATION[0]},{ROTATION[1]}]]"],
+                           "lnf.evaluate", {**lab, "study": "rotation"})
+        # large time steps
+        dts = "0.05,0.2" if smoke else "0.05,0.1,0.2,0.4,0.8"
+        study.multirun(f"dt_{integ}", [*common, f"dt={dts}", "max_trajectories=8"], "lnf.evaluate", {**lab, "study": "dt"})
+        # resolution transfer, with each method's first integrator
+        own = ",".join(str(ckpts[m]) for m in S.METHODS if INTEGRATORS[m][0] == integ)
+        if own:
+            res = "8" if smoke else "16,64,128"
+            base = [f"ckpt_path={own}", "figures=0", f"threads={study.threads}", f"integrator={integ}"]
+            study.multirun(f"grid_{integ}", [*base, "grid.kind=uniform", f"grid.resolution={res}"], "lnf.evaluate",
+                           {**lab, "study": "resolution"})
+            study.multirun(f"random_{integ}", [*base, "grid.kind=random", "grid.n_points=4096"], "lnf.evaluate",
+                           {**lab, "study": "resolution"})
+    for row in study.rows[before:]:
+        row["method"] = by_path[str(row["ckpt_path"])]
+
+
+def _theta0(row: dict) -> float:
+    states = row.get("initial_states")
+    return float(states[0][0]) / np.pi if isinstance(states, list) else np.nan
+
+
+def failure_dt(rows: list[dict]) -> float:
+    """Largest dt before the first failure: a diverged trajectory, or an error above max(2 × the smallest dt's, 0.05)."""
+    rows = sorted(rows, key=lambda r: float(r["dt"]))
+    base = float(rows[0]["field_rel_l2/all/median"])
+    ok = np.nan
+    for r in rows:
+        err = float(r["field_rel_l2/all/median"])
+        if float(r.get("diverged_fraction", 0)) > 0 or not np.isfinite(err) or err > max(2 * base, 0.05):
+            break
+        ok = float(r["dt"])
+    return ok
+
+
+def plot(study: S.Study, rows: list[dict]) -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(2, 2, figsize=(13, 9))
+    combos = [(m, i) for m in S.METHODS for i in INTEGRATORS[m]]
+    styles = {"implicit_midpoint": "-", "rk4": ":"}
+
+    ax = axes[0, 0]
+    width = 0.8 / len(combos)
+    for k, (m, integ) in enumerate(combos):
+        for j, factor in enumerate([20, 200]):
+            sel = [r for r in rows if r.get("study") == "long" and r["method"] == m and r["integrator_name"] == integ
+                   and int(r["horizon_factor"]) == factor]
+            if not sel:
+                continue
+            drift = float(sel[0].get("energy_drift/max", np.nan))
+            x = j + (k - len(combos) / 2) * width
+            diverged = float(sel[0].get("diverged_fraction", 0)) > 0 or not np.isfinite(drift)
+            ax.bar(x, drift if np.isfinite(drift) else 1.0, width, color=S.COLORS[m],
+                   hatch="//" if integ == "rk4" else None, edgecolor="k",
+                   label=f"{S.LABELS[m]}, {SHORT[integ]}" if j == 0 else None)
+            if diverged:
+                ax.text(x, 1.0, "×", ha="center", color="k")
+    ax.set_xticks([0, 1], ["20× training horizon (50 s)", "200× (500 s)"])
+    ax.set_yscale("log")
+    ax.set_ylabel("energy drift max_t |Ẽ(t) − Ẽ(0)| / E_scale\n(max over 4 trajectories)")
+    ax.legend(fontsize=7)
+    ax.set_title("Long horizons (× = diverged)", fontsize=9)
+
+    ax = axes[0, 1]
+    for m, integ in combos:
+        sel = sorted((r for r in rows if r.get("study") == "high_energy" and r["method"] == m
+                      and r["integrator_name"] == integ), key=_theta0)
+        if sel:
+            x = np.array([_theta0(r) for r in sel])
+            y = np.array([float(r["field_rel_l2/all/median"]) for r in sel])
+            bad = ~np.isfinite(y) | np.array([float(r.get("diverged_fraction", 0)) > 0 for r in sel])
+            yy = np.where(np.isfinite(y), y, 10.0)
+            ax.plot(x, yy, styles[integ], marker=S.MARKERS[m], color=S.COLORS[m], label=f"{S.LABELS[m]}, {SHORT[integ]}")
+            ax.scatter(x[bad], yy[bad], marker="x", s=80, color="k", zorder=4)
+    ax.axvspan(0, 0.5, color="0.9", label="training range |θ0| ≤ π/2")
+    ax.set_xlabel("θ0 / π (released at rest; 1 = separatrix)")
+    ax.set_ylabel("field_rel_l2 over 5 s (× = diverged, drawn at 10)")
+    ax.set_yscale("log")
+    ax.legend(fontsize=7)
+    ax.set_title("High energy, beyond the training range", fontsize=9)
+
+    ax = axes[1, 0]
+    for m, integ in combos:
+        sel = sorted((r for r in rows if r.get("study") == "dt" and r["method"] == m and r["integrator_name"] == integ),
+                     key=lambda r: float(r["dt"]))
+        if not sel:
+            continue
+        x = np.array([float(r["dt"]) for r in sel])
+        y = np.array([float(r["field_rel_l2/all/median"]) for r in sel])
+        bad = np.array([float(r.get("diverged_fraction", 0)) > 0 or not np.isfinite(float(r["field_rel_l2/all/median"]))
+                        for r in sel])
+        yy = np.where(np.isfinite(y), y, 10.0)
+        ax.plot(x, yy, styles[integ], marker=S.MARKERS[m], color=S.COLORS[m], label=f"{S.LABELS[m]}, {SHORT[integ]}")
+        ax.scatter(x[bad], yy[bad], marker="x", s=80, color="k", zorder=4)
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("time step dt [s]")
+    ax.set_ylabel("field_rel_l2 over 5 s\n(× = diverged in ≥ 1 trajectory)")
+    ax.legend(fontsize=7)
+    ax.set_title("Large time steps", fontsize=9)
+
+    ax = axes[1, 1]
+    labels = []
+    for k, m in enumerate(S.METHODS):
+        sel = [r for r in rows if r.get("study") == "resolution" and r["method"] == m]
+        sel = sorted(sel, key=lambda r: (r.get("grid.kind") == "random", int(r.get("grid.resolution", 0) or 0)))
+        names = [f"{r['grid.resolution']}²" if r.get("grid.kind") == "uniform" else "4096 random" for r in sel]
+        labels = labels or names
+        ax.bar(np.arange(len(sel)) + (k - 1.5) * 0.2, [float(r["field_rel_l2/all/median"]) for r in sel], 0.2,
+               color=S.COLORS[m], label=S.LABELS[m])
+    ax.set_xticks(np.arange(len(labels)), labels)
+    ax.set_yscale("log")
+    ax.set_ylabel("test field_rel_l2 (all), median")
+    ax.set_title("Resolution transfer (trained on 25 % of 32×32)", fontsize=9)
+    ax.legend(fontsize=7)
+    fig.suptitle(f"Stability, {study.scene} — {S.caption(study, 'python experiments/stability.py')}", fontsize=9)
+    return S.save_figure(fig, study.out / "stability.png")
+
+
+def summary(study: S.Study, rows: list[dict]) -> Path:
+    table = []
+    for m in S.METHODS:
+        for integ in INTEGRATORS[m]:
+            def pick(st, **kw):
+                return [r for r in rows if r.get("study") == st and r["method"] == m and r["integrator_name"] == integ
+                        and all(str(r.get(k)) == str(v) for k, v in kw.items())]
+            long20, long200 = pick("long", horizon_factor=20), pick("long", horizon_factor=200)
+            energy = sorted(pick("high_energy"), key=_theta0)
+            rot = pick("rotation")
+            dts = pick("dt")
+            table.append({
+                "method": S.LABELS[m], "integrator": SHORT[integ],
+                "drift20": long20[0].get("energy_drift/max") if long20 else "",
+                "vpt20": long20[0].get("vpt/median") if long20 else "",
+                "drift200": long200[0].get("energy_drift/max") if long200 else "",
+                "vpt200": long200[0].get("vpt/median") if long200 else "",
+                "err_099": energy[-1]["field_rel_l2/all/median"] if energy else "",
+                "err_rot": rot[0]["field_rel_l2/all/median"] if rot else "",
+                "max_dt": failure_dt(dts) if dts else "",
+            })
+    res = []
+    for m in S.METHODS:
+        row = {"method": S.LABELS[m]}
+        for r in rows:
+            if r.get("study") == "resolution" and r["method"] == m:
+                key = f"{r['grid.resolution']}²" if r.get("grid.kind") == "uniform" else "random"
+                row[key] = r["field_rel_l2/all/median"]
+        res.append(row)
+    text = [f"# Stability study ({study.scene}, {study.mode} settings)\n\n",
+            f"Machine: {study.machine()}. Command: `python experiments/stability.py"
+            f"{'' if study.mode == 'reduced' else ' --' + study.mode}`.\n\n",
+            S.markdown_table(table, [("method", "method"), ("integrator", "integrator"),
+                                     ("drift20", "energy drift 20×"), ("vpt20", "vpt 20× [s]"),
+                                     ("drift200", "energy drift 200×"), ("vpt200", "vpt 200× [s]"),
+                                     ("err_099", "err θ0=0.99π"), ("err_rot", "err rotation"),
+                                     ("max_dt", "largest ok dt [s]")]),
+            "\nResolution transfer (field_rel_l2, all, median):\n\n",
+            S.markdown_table(res, [("method", "method")] + [(k, k) for k in ("16²", "64²", "128²", "random")])]
+    return S.write_text_atomic(study.out / "summary.md", "".join(text))
+
+
+def main(argv=None) -> None:
+    study, _ = S.parse_args("stability", __doc__, argv)
+    evaluations(study, train_all(study))
+    csv_path = study.write_csv("stability.csv")
+    study.finish([csv_path, plot(study, study.rows), summary(study, study.rows)])
+
+
+if __name__ == "__main__":
+    main()

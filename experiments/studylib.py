@@ -1,0 +1,280 @@
+"""Shared machinery of the benchmark studies in experiments/: Hydra multiruns, CSV tables, charts.
+
+Each study script runs `python -m lnf.train -m ...` (and `python -m lnf.evaluate -m ...`) as Hydra
+multiruns into ``outputs/studies/<study>/<sweep>/<job>/``, collects every job's ``metrics.json`` with
+its overrides into one CSV, and draws its charts from that CSV. A sweep whose jobs all finished with the
+same command is reused (delete the folder or pass --fresh to rerun it). Every study takes
+``--scene`` (any ``conf/experiment/<scene>.yaml``), ``--full`` (the full study: the default model size
+and training budget) and ``--smoke`` (tiny settings, for the test suite).
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import os
+import platform
+import shutil
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterable, Optional, Sequence
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+
+# The methods compared in every chart: label → overrides that select them (DESIGN.md §6 baselines)
+METHODS: dict[str, list[str]] = {
+    "lnf": [],
+    "latent_mlp": ["dynamics=latent_mlp"],
+    "pod": ["model=pod"],
+    "full_order": ["model=full_order"],
+}
+LABELS = {"lnf": "LNF (ours)", "latent_mlp": "black-box latent MLP", "pod": "POD-Galerkin", "full_order": "full order"}
+COLORS = {"lnf": "tab:blue", "latent_mlp": "tab:red", "pod": "tab:green", "full_order": "tab:gray"}
+MARKERS = {"lnf": "o", "latent_mlp": "s", "pod": "^", "full_order": "D"}
+
+COMMON = ["logger=csv", "evaluation.every_n_epochs=0", "evaluation.figures=0", "trainer.enable_progress_bar=false"]
+# Reduced settings (each study under 30 min on 2 CPU cores): smaller SIREN, 15 epochs, higher lr
+REDUCED_NEURAL = ["model.width=64", "model.hyper_width=64", "trainer.max_epochs=15", "optimizer.lr=2e-3"]
+SMOKE_DATA = ["data.n_train=3", "data.n_val=1", "data.n_test=2", "data.n_times=20", "data.train_times=10",
+              "data.fine_resolution=12", "data.coarse_resolution=16", "data.batch_size=8"]
+SMOKE_NEURAL = ["model.width=16", "model.hyper_width=8", "trainer.max_epochs=1", "quadrature.order=4",
+                "evaluation.max_reduction_points=64"]
+
+
+@dataclass
+class Study:
+    """Settings of one study run, from the command line."""
+
+    name: str
+    scene: str
+    mode: str  # "reduced" | "full" | "smoke"
+    out: Path
+    threads: int
+    fresh: bool = False
+    rows: list[dict[str, Any]] = field(default_factory=list)
+    started: float = field(default_factory=time.perf_counter)
+
+    # -- settings -------------------------------------------------------------------------------
+    def base(self) -> list[str]:
+        """Overrides shared by every training job of the study."""
+        out = [f"+experiment={self.scene}", *COMMON, f"threads={self.threads}"]
+        if self.mode == "smoke":
+            out += SMOKE_DATA + ["evaluation.long_steps=10", "evaluation.long_trajectories=1"]
+        return out
+
+    def neural(self) -> list[str]:
+        """Extra overrides of the neural methods (ours and the black box) for this mode."""
+        if self.mode == "smoke":
+            return SMOKE_NEURAL
+        return REDUCED_NEURAL if self.mode == "reduced" else []
+
+    def method(self, name: str, extra: Sequence[str] = ()) -> list[str]:
+        """Overrides selecting method `name` with this mode's settings, plus `extra`."""
+        over = [*self.base(), *METHODS[name]]
+        if name in ("lnf", "latent_mlp"):
+            over += self.neural()
+            if name == "latent_mlp" and self.mode == "smoke":
+                over += ["dynamics.iterations=10"]
+        elif self.mode == "smoke":
+            over += ["evaluation.max_reduction_points=64"]
+            if name == "full_order":
+                over += ["model.resolution=12"]
+        return [*over, *extra]
+
+    # -- running --------------------------------------------------------------------------------
+    def multirun(self, sweep: str, overrides: Sequence[str], entry: str = "lnf.train",
+                 label: Optional[dict[str, Any]] = None) -> list[dict[str, Any]]:
+        """Run (or reuse) one Hydra multirun into out/<sweep>; returns its rows (also kept in self.rows)."""
+        folder = self.out / sweep
+        cmd = [sys.executable, "-m", entry, "-m", *overrides, f"hydra.sweep.dir={folder}",
+               "hydra.sweep.subdir=${hydra.job.num}"]
+        stamp = folder / "command.json"
+        if self.fresh and folder.exists():
+            shutil.rmtree(folder)
+        if stamp.is_file() and json.loads(stamp.read_text()) == cmd[1:] and _all_done(folder):
+            print(f"[{self.name}] reusing {folder}")
+        else:
+            if folder.exists():
+                shutil.rmtree(folder)
+            folder.mkdir(parents=True)
+            print(f"[{self.name}] {sweep}: python -m {entry} -m {' '.join(overrides)}", flush=True)
+            t0 = time.perf_counter()
+            env = {**os.environ, "HYDRA_FULL_ERROR": "1", "LNF_ROOT": str(ROOT)}
+            log = folder / "multirun.log"
+            with open(log, "w") as fh:
+                proc = subprocess.run(cmd, cwd=ROOT, env=env, stdout=fh, stderr=subprocess.STDOUT)
+            if proc.returncode != 0:
+                tail = log.read_text()[-3000:]
+                raise RuntimeError(f"sweep {sweep} failed (exit {proc.returncode}); log {log}:\n{tail}")
+            _write_json_atomic(stamp, cmd[1:])
+            print(f"[{self.name}] {sweep}: done in {time.perf_counter() - t0:.0f} s", flush=True)
+        rows = collect(folder, sweep, label)
+        self.rows += rows
+        return rows
+
+    def write_csv(self, name: str, rows: Optional[list[dict[str, Any]]] = None) -> Path:
+        return write_csv(self.out / name, self.rows if rows is None else rows)
+
+    def machine(self) -> str:
+        import torch
+
+        return (f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores visible, "
+                f"torch {torch.__version__}, {self.threads} threads")
+
+    def finish(self, outputs: Iterable[Path]) -> None:
+        print(f"[{self.name}] {self.mode} study finished in {(time.perf_counter() - self.started) / 60:.1f} min "
+              f"on {self.machine()}")
+        for p in outputs:
+            print(f"  wrote {p}")
+
+
+def parse_args(name: str, description: str, argv: Optional[Sequence[str]] = None,
+               extra: Optional[callable] = None) -> tuple[Study, argparse.Namespace]:
+    p = argparse.ArgumentParser(description=description, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--scene", default="pendulum", help="experiment config of the scene (conf/experiment/<scene>.yaml)")
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--full", action="store_true", help="the full study (default model size and training budget)")
+    g.add_argument("--smoke", action="store_true", help="tiny settings (the test suite's smoke test)")
+    p.add_argument("--out", type=Path, default=None, help="output folder (default outputs/studies/<study>[-<mode>])")
+    p.add_argument("--threads", type=int, default=2, help="torch threads per job")
+    p.add_argument("--fresh", action="store_true", help="rerun sweeps even if their results exist")
+    if extra is not None:
+        extra(p)
+    args = p.parse_args(argv)
+    if not (ROOT / "conf" / "experiment" / f"{args.scene}.yaml").is_file():
+        p.error(f"--scene {args.scene!r}: no conf/experiment/{args.scene}.yaml")
+    mode = "full" if args.full else "smoke" if args.smoke else "reduced"
+    out = args.out or ROOT / "outputs" / "studies" / (name if mode == "reduced" else f"{name}-{mode}")
+    if args.scene != "pendulum" and args.out is None:
+        out = out.with_name(f"{out.name}-{args.scene}")
+    return Study(name=name, scene=args.scene, mode=mode, out=out, threads=args.threads, fresh=args.fresh), args
+
+
+# ---------------------------------------------------------------------------------------------------
+# results
+# ---------------------------------------------------------------------------------------------------
+def _job_dirs(folder: Path) -> list[Path]:
+    return sorted((p for p in folder.iterdir() if p.is_dir() and p.name.isdigit()), key=lambda p: int(p.name))
+
+
+def _all_done(folder: Path) -> bool:
+    jobs = _job_dirs(folder) if folder.is_dir() else []
+    return bool(jobs) and all((j / "metrics.json").is_file() for j in jobs)
+
+
+def _parse_value(text: str) -> Any:
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError:
+        return text
+
+
+def collect(folder: Path, sweep: str, label: Optional[dict[str, Any]] = None) -> list[dict[str, Any]]:
+    """One row per finished job: sweep, job, its command-line overrides (key=value) and its metrics."""
+    import yaml
+
+    rows = []
+    for job in _job_dirs(folder):
+        metrics_file = job / "metrics.json"
+        if not metrics_file.is_file():
+            continue
+        over = {}
+        ofile = job / ".hydra" / "overrides.yaml"
+        if ofile.is_file():
+            for item in yaml.safe_load(ofile.read_text()) or []:
+                key, _, value = str(item).partition("=")
+                over[key.lstrip("+")] = _parse_value(value)
+        rows.append({"sweep": sweep, "job": int(job.name), "dir": str(job.relative_to(ROOT) if job.is_relative_to(ROOT)
+                                                                       else job),
+                     **(label or {}), **over, **json.loads(metrics_file.read_text())})
+    return rows
+
+
+def _write_json_atomic(path: Path, payload: Any) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(payload, indent=1))
+    os.replace(tmp, path)
+
+
+def write_csv(path: Path, rows: list[dict[str, Any]]) -> Path:
+    """All rows (union of keys; empty where a row lacks one), written to a temporary name, then renamed."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    keys: list[str] = []
+    for r in rows:
+        keys += [k for k in r if k not in keys]
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=keys)
+        w.writeheader()
+        w.writerows(rows)
+    os.replace(tmp, path)
+    return path
+
+
+def method_of(row: dict[str, Any]) -> str:
+    if row.get("method"):
+        return row["method"]
+    if row.get("dynamics") == "latent_mlp":
+        return "latent_mlp"
+    return {"pod": "pod", "full_order": "full_order"}.get(row.get("model"), "lnf")
+
+
+def pareto_mask(cost: np.ndarray, error: np.ndarray) -> np.ndarray:
+    """True where no other point has both lower-or-equal cost and error (and one strictly lower)."""
+    cost, error = np.asarray(cost, float), np.asarray(error, float)
+    ok = np.isfinite(cost) & np.isfinite(error)
+    mask = np.zeros(len(cost), bool)
+    for i in np.flatnonzero(ok):
+        dominated = ok & (cost <= cost[i]) & (error <= error[i]) & ((cost < cost[i]) | (error < error[i]))
+        mask[i] = not dominated.any()
+    return mask
+
+
+def dominates(front_cost: np.ndarray, front_error: np.ndarray, cost: float, error: float) -> bool:
+    """Whether some point of a front has cost ≤ `cost` and error ≤ `error`."""
+    return bool(np.any((np.asarray(front_cost) <= cost) & (np.asarray(front_error) <= error)))
+
+
+def save_figure(fig: Any, path: Path) -> Path:
+    """PNG written to a temporary name, then renamed."""
+    import matplotlib.pyplot as plt
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    fig.savefig(tmp, format="png", dpi=120, bbox_inches="tight")
+    plt.close(fig)
+    os.replace(tmp, path)
+    return path
+
+
+def caption(study: Study, command: str) -> str:
+    return f"{command} · {study.mode} settings · {study.machine()}"
+
+
+def fmt(x: Any, digits: int = 3) -> str:
+    try:
+        x = float(x)
+    except (TypeError, ValueError):
+        return str(x)
+    if not np.isfinite(x):
+        return "diverged"  # metrics of a rollout that left the finite range are NaN or inf
+    return f"{x:.{digits}g}"
+
+
+def markdown_table(rows: list[dict[str, Any]], columns: list[tuple[str, str]]) -> str:
+    """Rows as a Markdown table; columns are (key, header)."""
+    head = "| " + " | ".join(h for _, h in columns) + " |\n|" + "---|" * len(columns) + "\n"
+    return head + "".join("| " + " | ".join(fmt(r.get(k, "")) for k, _ in columns) + " |\n" for r in rows)
+
+
+def write_text_atomic(path: Path, text: str) -> Path:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+    return path
