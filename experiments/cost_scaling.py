@@ -151,10 +151,7 @@ def plot(study: S.Study, rows: list[dict]) -> Path:
     axes[2].set_xlabel("trajectories rolled out at once (64² grid)")
     axes[2].set_ylabel("rollout wall-clock per trajectory [s] (100 steps)")
     for ax in axes:
-        ax.set_xscale("log")
-        ax.set_yscale("log")
-        ax.grid(True, which="both", alpha=0.3)
-        ax.legend(fontsize=6)
+        S.log_axes(ax, legend_size=6)
     fig.suptitle(f"Cost scaling, {study.scene} — {S.caption(study, 'python experiments/cost_scaling.py')}", fontsize=9)
     return S.save_figure(fig, study.out / "cost_scaling.png")
 

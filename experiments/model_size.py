@@ -63,12 +63,9 @@ def plot(study: S.Study, rows: list[dict], others: list[dict], target: float, ch
     if chosen:
         ax.scatter([int(chosen["model.width"])], [float(chosen[ERR])], s=250, facecolors="none", edgecolors="r", lw=2,
                    label=f"choice: d = {chosen['model.latent_dim']}, width {chosen['model.width']}")
-    ax.set_xscale("log", base=2)
-    ax.set_yscale("log")
     ax.set_xlabel("SIREN width")
     ax.set_ylabel("test field_rel_l2 (all), median")
-    ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=8)
+    S.log_axes(ax, legend_size=8, x_base=2)
     ax.set_title(f"Model size, {study.scene} — {study.mode} settings", fontsize=9)
     return S.save_figure(fig, study.out / "model_size.png")
 

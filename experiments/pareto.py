@@ -162,12 +162,9 @@ def plot(study: S.Study, rows: list[dict]) -> list[Path]:
             if sel:
                 ax.plot([n_quadrature_points(r) for r in sel], [float(r["field_rel_l2/all/median"]) for r in sel], style,
                         label=f"{kind.replace('_', '–')} ({name})")
-    ax.set_xscale("log")
-    ax.set_yscale("log")
     ax.set_xlabel("quadrature points inside the reduced dynamics")
     ax.set_ylabel("test field_rel_l2 (all), median")
-    ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=7)
+    S.log_axes(ax)
     ax.set_title(f"Quadrature of the reduced dynamics ({study.scene})", fontsize=9)
     out.append(S.save_figure(fig, study.out / "quadrature.png"))
     return out

@@ -49,21 +49,16 @@ def plot(study: S.Study, rows: list[dict]) -> Path:
                 sel += [dict(r, **{"data.noise": 0.0}) for r in rows if r["method"] == m and r["knob"] == "fraction"
                         and float(r["data.observed_fraction"]) == 0.25]
             sel = sorted(sel, key=lambda r: float(r[key]))
-            x = np.array([float(r[key]) for r in sel])
-            y = np.array([float(r[ERR]) for r in sel])
-            yy = np.where(np.isfinite(y), y, 10.0)
-            ax.plot(x if knob == "fraction" else x + 1e-3, yy, marker=S.MARKERS[m], color=S.COLORS[m], label=S.LABELS[m])
-            bad = ~np.isfinite(y) | np.array([float(r.get("diverged_fraction", 0)) > 0 for r in sel], bool)
-            ax.scatter((x if knob == "fraction" else x + 1e-3)[bad], yy[bad], marker="x", s=80, color="k", zorder=4)
+            x = np.array([float(r[key]) for r in sel]) + (1e-3 if knob == "noise" else 0.0)
+            S.plot_marking_failures(ax, x, np.array([float(r[ERR]) for r in sel]),
+                                    np.array([float(r.get("diverged_fraction", 0)) > 0 for r in sel], bool),
+                                    marker=S.MARKERS[m], color=S.COLORS[m], label=S.LABELS[m])
         ref = [r for r in rows if r["method"] == "full_order"]
         if ref:
             ax.axhline(float(ref[0][ERR]), color=S.COLORS["full_order"], ls="--", label="full order (no training data)")
-        ax.set_xscale("log")
-        ax.set_yscale("log")
         ax.set_xlabel(xlabel + (" (+0.001 so that 0 shows)" if knob == "noise" else ""))
         ax.set_ylabel("test field_rel_l2 (all), median")
-        ax.grid(True, which="both", alpha=0.3)
-        ax.legend(fontsize=7)
+        S.log_axes(ax)
     fig.suptitle(f"Sparse and noisy training data, {study.scene} — {S.caption(study, 'python experiments/sparse_noisy.py')}"
                  " (× = diverged)", fontsize=9)
     return S.save_figure(fig, study.out / "sparse_noisy.png")

@@ -90,6 +90,10 @@ def _theta0(row: dict) -> float:
     return float(states[0][0]) / np.pi if isinstance(states, list) else np.nan
 
 
+def _diverged(rows: list[dict]) -> np.ndarray:
+    return np.array([float(r.get("diverged_fraction", 0)) > 0 for r in rows], bool)
+
+
 def failure_dt(rows: list[dict]) -> float:
     """Largest dt before the first failure: a diverged trajectory, or an error above max(2 × the smallest dt's, 0.05)."""
     rows = sorted(rows, key=lambda r: float(r["dt"]))
@@ -140,12 +144,10 @@ def plot(study: S.Study, rows: list[dict]) -> Path:
         sel = sorted((r for r in rows if r.get("study") == "high_energy" and r["method"] == m
                       and r["integrator_name"] == integ), key=_theta0)
         if sel:
-            x = np.array([_theta0(r) for r in sel])
-            y = np.array([float(r["field_rel_l2/all/median"]) for r in sel])
-            bad = ~np.isfinite(y) | np.array([float(r.get("diverged_fraction", 0)) > 0 for r in sel])
-            yy = np.where(np.isfinite(y), y, 10.0)
-            ax.plot(x, yy, styles[integ], marker=S.MARKERS[m], color=S.COLORS[m], label=f"{S.LABELS[m]}, {SHORT[integ]}")
-            ax.scatter(x[bad], yy[bad], marker="x", s=80, color="k", zorder=4)
+            S.plot_marking_failures(ax, np.array([_theta0(r) for r in sel]),
+                                    np.array([float(r["field_rel_l2/all/median"]) for r in sel]), _diverged(sel),
+                                    styles[integ], marker=S.MARKERS[m], color=S.COLORS[m],
+                                    label=f"{S.LABELS[m]}, {SHORT[integ]}")
     ax.axvspan(0, 0.5, color="0.9", label="training range |θ0| ≤ π/2")
     ax.set_xlabel("θ0 / π (released at rest; 1 = separatrix)")
     ax.set_ylabel("field_rel_l2 over 5 s (× = diverged, drawn at 10)")
@@ -159,13 +161,10 @@ def plot(study: S.Study, rows: list[dict]) -> Path:
                      key=lambda r: float(r["dt"]))
         if not sel:
             continue
-        x = np.array([float(r["dt"]) for r in sel])
-        y = np.array([float(r["field_rel_l2/all/median"]) for r in sel])
-        bad = np.array([float(r.get("diverged_fraction", 0)) > 0 or not np.isfinite(float(r["field_rel_l2/all/median"]))
-                        for r in sel])
-        yy = np.where(np.isfinite(y), y, 10.0)
-        ax.plot(x, yy, styles[integ], marker=S.MARKERS[m], color=S.COLORS[m], label=f"{S.LABELS[m]}, {SHORT[integ]}")
-        ax.scatter(x[bad], yy[bad], marker="x", s=80, color="k", zorder=4)
+        S.plot_marking_failures(ax, np.array([float(r["dt"]) for r in sel]),
+                                np.array([float(r["field_rel_l2/all/median"]) for r in sel]), _diverged(sel),
+                                styles[integ], marker=S.MARKERS[m], color=S.COLORS[m],
+                                label=f"{S.LABELS[m]}, {SHORT[integ]}")
     ax.set_xscale("log")
     ax.set_yscale("log")
     ax.set_xlabel("time step dt [s]")

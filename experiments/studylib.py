@@ -24,6 +24,8 @@ from typing import Any, Iterable, Optional, Sequence
 
 import numpy as np
 
+from lnf.training.callbacks import write_json_atomic
+
 ROOT = Path(__file__).resolve().parents[1]
 
 # The methods compared in every chart: label → overrides that select them (DESIGN.md §6 baselines)
@@ -111,7 +113,7 @@ class Study:
             if proc.returncode != 0:
                 tail = log.read_text()[-3000:]
                 raise RuntimeError(f"sweep {sweep} failed (exit {proc.returncode}); log {log}:\n{tail}")
-            _write_json_atomic(stamp, cmd[1:])
+            write_json_atomic(stamp, cmd[1:])
             print(f"[{self.name}] {sweep}: done in {time.perf_counter() - t0:.0f} s", flush=True)
         rows = collect(folder, sweep, label)
         self.rows += rows
@@ -241,15 +243,31 @@ def dominates(front_cost: np.ndarray, front_error: np.ndarray, cost: float, erro
 
 
 def save_figure(fig: Any, path: Path) -> Path:
-    """PNG written to a temporary name, then renamed."""
+    """PNG written atomically (lnf.plotting.save_figure), cropped to its content; closes the figure."""
     import matplotlib.pyplot as plt
 
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    fig.savefig(tmp, format="png", dpi=120, bbox_inches="tight")
-    plt.close(fig)
-    os.replace(tmp, path)
-    return path
+    from lnf.plotting import save_figure as save_png
+
+    try:
+        return save_png(fig, path, bbox_inches="tight")
+    finally:
+        plt.close(fig)
+
+
+def plot_marking_failures(ax: Any, x: np.ndarray, y: np.ndarray, failed: np.ndarray, *fmt: str, **kwargs: Any) -> None:
+    """Line of y against x where non-finite or `failed` points are drawn at 10 and marked ×."""
+    failed = np.asarray(failed, bool) | ~np.isfinite(y)
+    yy = np.where(np.isfinite(y), y, 10.0)
+    ax.plot(x, yy, *fmt, **kwargs)
+    ax.scatter(x[failed], yy[failed], marker="x", s=80, color="k", zorder=4)
+
+
+def log_axes(ax: Any, legend_size: int = 7, x_base: float = 10) -> None:
+    """Log–log axes with a light grid and a small legend."""
+    ax.set_xscale("log", base=x_base)
+    ax.set_yscale("log")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=legend_size)
 
 
 def caption(study: Study, command: str) -> str:
@@ -273,8 +291,12 @@ def markdown_table(rows: list[dict[str, Any]], columns: list[tuple[str, str]]) -
 
 
 def write_text_atomic(path: Path, text: str) -> Path:
+    """Text written to a temporary name in the same folder, then renamed."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
+    tmp = path.with_name(path.name + f".tmp-{os.getpid()}")
+    try:
+        tmp.write_text(text)
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
     return path

@@ -479,12 +479,12 @@ def figure3(
     return fig
 
 
-def save_figure(fig: Figure, path) -> Path:
+def save_figure(fig: Figure, path, **savefig_kwargs) -> Path:
     """Write ``fig`` as a PNG (dpi 120) to ``path`` atomically; return the path.
 
     Renders to a uniquely named temporary file in the same directory, then ``os.replace``s it onto
     ``path``, so a reader never sees a half-written file. Parent directories are created. The format
-    is always PNG, whatever the suffix of ``path``.
+    is always PNG, whatever the suffix of ``path``. Other keyword arguments go to ``fig.savefig``.
     """
     if not isinstance(fig, Figure):
         raise ValueError(f"fig must be a matplotlib.figure.Figure, got {type(fig).__name__}")
@@ -492,7 +492,7 @@ def save_figure(fig: Figure, path) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}.tmp.png")
     try:
-        fig.savefig(tmp, format="png", dpi=_DPI)
+        fig.savefig(tmp, format="png", dpi=_DPI, **savefig_kwargs)
         os.replace(tmp, path)
     except BaseException:
         try:
