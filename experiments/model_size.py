@@ -74,23 +74,28 @@ def main(argv=None) -> None:
     def extra(p):
         p.add_argument("--target", type=float, default=None,
                        help="accuracy target on test field_rel_l2 (default 0.10 reduced, 0.02 full)")
+        p.add_argument("--dims", default=None, help="latent dimensions to try, e.g. 1,2,3 (default by mode)")
+        p.add_argument("--widths", default=None, help="SIREN widths to try, e.g. 32,64 (default by mode)")
+        p.add_argument("--modes", default=None, help="POD mode counts to try (default 1,2,3,4)")
 
     study, args = S.parse_args("model_size", __doc__, argv, extra)
     target = args.target if args.target is not None else {"reduced": 0.10, "full": 0.02, "smoke": 10.0}[study.mode]
     dims, widths = {"smoke": ("1,2", "8,16"), "reduced": ("1,2", "16,32,64"),
                     "full": ("1,2,3", "32,64,128,256")}[study.mode]
+    dims, widths = args.dims or dims, args.widths or widths
     rows = study.multirun("search", study.method("lnf", [f"model.latent_dim={dims}", f"model.width={widths}"]),
                           label={"method": "lnf"})
     chosen = choose(rows, target)
     # the baselines at the same question: POD's number of modes, the black box at the chosen size, the full-order model
-    modes = "1,2" if study.mode == "smoke" else "1,2,3,4"
+    modes = args.modes or ("1,2" if study.mode == "smoke" else "1,2,3,4")
     pod = study.multirun("pod_modes", study.method("pod", [f"model.latent_dim={modes}"]), label={"method": "pod"})
     others = list(pod)
-    if chosen is not None:
+    if chosen is not None and study.supports("latent_mlp"):
         others += study.multirun("latent_mlp_choice", study.method("latent_mlp", [
             f"model.latent_dim={chosen['model.latent_dim']}", f"model.width={chosen['model.width']}"]),
             label={"method": "latent_mlp"})
-    others += study.multirun("full_order", study.method("full_order"), label={"method": "full_order"})
+    if study.supports("full_order"):
+        others += study.multirun("full_order", study.method("full_order"), label={"method": "full_order"})
     pod_ok = [r for r in pod if float(r[ERR]) <= target]
     csv_path = study.write_csv("model_size.csv")
     cols = [("model.latent_dim", "d"), ("model.width", "width"), (ERR, "field_rel_l2"),
@@ -103,8 +108,8 @@ def main(argv=None) -> None:
     pod_verdict = (f"POD-Galerkin meets the target from k = {min(int(r['model.latent_dim']) for r in pod_ok)} modes."
                    if pod_ok else "POD-Galerkin does not meet the target with the modes tried.")
     text = (f"# Model size ({study.scene}, {study.mode} settings, target field_rel_l2 ≤ {target:g})\n\n"
-            f"Machine: {study.machine()}. Command: `python experiments/model_size.py"
-            f"{'' if study.mode == 'reduced' else ' --' + study.mode} --target {target:g}`.\n\n{verdict}\n\n"
+            f"Machine: {study.machine()}. Command: `python experiments/model_size.py "
+            f"{' '.join(sys.argv[1:] if argv is None else argv)}`.\n\n{verdict}\n\n"
             f"{pod_verdict}\n\n"
             + S.markdown_table(sorted(rows, key=lambda r: (int(r["model.latent_dim"]), int(r["model.width"]))), cols)
             + "\nBaselines:\n\n" + S.markdown_table(others, [("method", "method")] + cols))

@@ -23,13 +23,14 @@ JetFn = Callable[..., FieldJet]
 
 @dataclass
 class DynamicsTerms:
-    """M̃ (B, d, d), c̃ (B, d), g̃ (B, d), Ṽ (B,), and ∂T̃/∂q̃ (B, d) at the evaluated state."""
+    """M̃ (B, d, d), c̃ (B, d), g̃ (B, d), Ṽ (B,), ∂T̃/∂q̃ (B, d), τ̃ (B, d) or None at the evaluated state."""
 
     mass: Tensor
     coriolis: Tensor
     gravity: Tensor
     potential: Tensor
     kinetic_gradient: Tensor
+    force: Optional[Tensor] = None
 
 
 class ReducedDynamics:
@@ -39,26 +40,41 @@ class ReducedDynamics:
         jet: φ's jet function, e.g. ``ModulatedSiren.jet`` or ``LinearEmbedding.jet``.
         scene: gives ω0 and V.
         quadrature: points and weights of the integrals.
-        forcing: optional generalized force τ(t, q̃, q̃̇, jet) → (B, d) added to the right-hand side.
+
+    The scene may add a kinetic energy beyond the flat ½∫ω0‖q̇‖² (:class:`lnf.scenes.base.ModalKinetic`) and
+    non-conservative forces f (B, N, A), which enter as τ̃ = Σ_j w_j J_jᵀ f_j; set `controls` (B, c) to the
+    trajectories' load parameters before integrating a forced scene.
     """
 
-    def __init__(self, jet: JetFn, scene: Scene, quadrature: Quadrature,
-                 forcing: Optional[Callable[..., Tensor]] = None) -> None:
+    def __init__(self, jet: JetFn, scene: Scene, quadrature: Quadrature) -> None:
         self.jet = jet
         self.scene = scene
         self.quadrature = quadrature
         self.points = quadrature.points
         self.density_weights = quadrature.weights * scene.density(quadrature.points)  # w_j ω0_j (N,)
         self.potential_fn = scene.potential(quadrature)
-        self.forcing = forcing
+        self.modal = scene.kinetic_correction(quadrature)  # kinetic energy beyond the flat metric, or None
+        self.force_fn = scene.generalized_force(quadrature)  # damping / actuation, or None
+        self.controls: Optional[Tensor] = None  # per-trajectory load parameters (B, c) for force_fn
 
     # -- pieces shared by the Lagrangian and Hamiltonian forms -------------------------------------
     def _jet(self, q: Tensor, order: int) -> FieldJet:
         return self.jet(q, self.points, order=order, spatial=self.potential_fn.needs_gradient)
 
-    def _mass(self, J: Tensor) -> Tensor:
-        """M̃ = Σ_j w_j ω0_j J_jᵀ J_j (B, d, d)."""
-        return torch.einsum("n,bnai,bnaj->bij", self.density_weights.to(J), J, J)
+    def _mass(self, jet: FieldJet) -> Tensor:
+        """M̃ = Σ_j w_j ω0_j J_jᵀ J_j (+ J̄ᵀ C(θ) J̄ with θ = Pφ, J̄ = PJ for a modal kinetic energy) (B, d, d)."""
+        J = jet.J
+        mass = torch.einsum("n,bnai,bnaj->bij", self.density_weights.to(J), J, J)
+        if self.modal is not None:
+            Jbar = self.modal.angles(J)
+            mass = mass + torch.einsum("bmi,bmk,bkj->bij", Jbar, self.modal.matrix(self.modal.angles(jet.value)), Jbar)
+        return mass
+
+    def _force(self, t: float, jet: FieldJet, v: Tensor) -> Tensor:
+        """τ̃ = Σ_j w_j J_jᵀ f_j of the scene's non-conservative force density f (B, d)."""
+        Jv = torch.einsum("bnai,bi->bna", jet.J, v)
+        f = self.force_fn.field_force(t, jet.value, Jv, self.controls)
+        return torch.einsum("n,bna,bnai->bi", self.force_fn.weights.to(v), f, jet.J)
 
     def _gravity(self, jet: FieldJet) -> Tensor:
         """g̃ = ∂Ṽ/∂q̃ = Σ_j (∂V/∂q_j) J_j + (∂V/∂G_j) : ∂G_j/∂q̃ (eq. 11) (B, d)."""
@@ -75,35 +91,48 @@ class ReducedDynamics:
         Hv = torch.einsum("bnaij,bj->bnai", jet.H, v)  # (B, N, A, d)
         kinetic_gradient = torch.einsum("n,bna,bnak->bk", ww, Jv, Hv)
         coriolis = torch.einsum("n,bnai,bnaj,bj->bi", ww, jet.J, Hv, v)
+        if self.modal is not None:
+            # T_C = ½ (J̄v)ᵀ C(θ) (J̄v): ∂/∂q̃_k = (J̄v)ᵀ C H̄_k v + ∂T_C/∂θ · J̄_k;
+            # c̃_C = J̄ᵀ (C H̄[v, v] + c_C(θ, J̄v)) (the pullback of the finite system's Coriolis vector)
+            theta, Jbar, Hbar_v = self.modal.angles(jet.value), self.modal.angles(jet.J), self.modal.angles(Hv)
+            C = self.modal.matrix(theta)
+            theta_dot = torch.einsum("bmi,bi->bm", Jbar, v)
+            C_theta_dot = torch.einsum("bmk,bk->bm", C, theta_dot)
+            kinetic_gradient = kinetic_gradient + torch.einsum("bm,bmk->bk", C_theta_dot, Hbar_v) \
+                + torch.einsum("bm,bmk->bk", self.modal.gradient(theta, theta_dot), Jbar)
+            theta_acc = torch.einsum("bmk,bk->bm", Hbar_v, v)
+            inner = torch.einsum("bmk,bk->bm", C, theta_acc) + self.modal.coriolis(theta, theta_dot)
+            coriolis = coriolis + torch.einsum("bmi,bm->bi", Jbar, inner)
         return kinetic_gradient, coriolis
 
     # -- public ------------------------------------------------------------------------------------
-    def terms(self, q: Tensor, v: Tensor) -> DynamicsTerms:
+    def terms(self, q: Tensor, v: Tensor, t: float = 0.0) -> DynamicsTerms:
         jet = self._jet(q, order=2)
         kinetic_gradient, coriolis = self._velocity_contractions(jet, v)
         potential = self.potential_fn(jet.value, jet.G)
-        return DynamicsTerms(self._mass(jet.J), coriolis, self._gravity(jet), potential, kinetic_gradient)
+        force = self._force(t, jet, v) if self.force_fn is not None else None
+        return DynamicsTerms(self._mass(jet), coriolis, self._gravity(jet), potential, kinetic_gradient, force)
 
     def acceleration(self, q: Tensor, v: Tensor, t: float = 0.0) -> Tensor:
-        """q̃̈ = M̃⁻¹ (−c̃ − g̃ + τ) (B, d)."""
-        terms = self.terms(q, v)
+        """q̃̈ = M̃⁻¹ (−c̃ − g̃ + τ̃) (B, d)."""
+        terms = self.terms(q, v, t)
         rhs = -terms.coriolis - terms.gravity
-        if self.forcing is not None:
-            rhs = rhs + self.forcing(t, q, v)
+        if self.force_fn is not None:
+            rhs = rhs + terms.force
         return solve_mass(terms.mass, rhs)
 
     def hamiltonian_derivatives(self, q: Tensor, p: Tensor, t: float = 0.0) -> tuple[Tensor, Tensor]:
         """(∂H/∂p̃ = q̃̇, −∂H/∂q̃ + τ) at (q̃, p̃) for H = ½ p̃ᵀM̃⁻¹p̃ + Ṽ, from one jet evaluation."""
         jet = self._jet(q, order=2)
-        v = solve_mass(self._mass(jet.J), p)
+        v = solve_mass(self._mass(jet), p)
         kinetic_gradient, _ = self._velocity_contractions(jet, v)
         force = kinetic_gradient - self._gravity(jet)
-        if self.forcing is not None:
-            force = force + self.forcing(t, q, v)
+        if self.force_fn is not None:
+            force = force + self._force(t, jet, v)
         return v, force
 
     def mass_matrix(self, q: Tensor) -> Tensor:
-        return self._mass(self.jet(q, self.points, order=1).J)
+        return self._mass(self.jet(q, self.points, order=1))
 
     def momentum(self, q: Tensor, v: Tensor) -> Tensor:
         """p̃ = M̃(q̃) q̃̇ (B, d)."""
@@ -124,5 +153,9 @@ class ReducedDynamics:
         jet = self._jet(q2, order=1)
         Jv = torch.einsum("bnai,bi->bna", jet.J, v2)
         kinetic = 0.5 * torch.einsum("n,bna,bna->b", self.density_weights.to(q), Jv, Jv)
+        if self.modal is not None:
+            theta_dot = self.modal.angles(Jv)
+            C = self.modal.matrix(self.modal.angles(jet.value))
+            kinetic = kinetic + 0.5 * torch.einsum("bm,bmk,bk->b", theta_dot, C, theta_dot)
         potential = self.potential_fn(jet.value, jet.G)
         return kinetic.reshape(shape), potential.reshape(shape)

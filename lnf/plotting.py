@@ -273,6 +273,7 @@ def _draw_fields(
     pred: np.ndarray,
     true: np.ndarray,
     h: float,
+    field_label: str = "field q",
 ):
     import matplotlib as mpl
 
@@ -314,7 +315,7 @@ def _draw_fields(
         where = "before horizon" if t < h else "after horizon"
         axes[0, s].set_title(f"t = {_format_t(t)} s\n({where})", fontsize="small")
 
-    fig.colorbar(im_f, ax=axes[:2, :].ravel().tolist(), label="field q", shrink=0.9)
+    fig.colorbar(im_f, ax=axes[:2, :].ravel().tolist(), label=field_label, shrink=0.9)
     fig.colorbar(im_e, ax=axes[2, :].ravel().tolist(), label="absolute error", shrink=0.9)
     return axes
 
@@ -427,6 +428,7 @@ def figure3(
     snapshot_indices: Sequence[int] | None,
     train_horizon: float,
     title: str = "",
+    field_label: str = "field q",
 ) -> Figure:
     """The paper's Figure 3 in one figure: top row latent and energies, below the field grid.
 
@@ -473,7 +475,7 @@ def figure3(
     top, bottom = fig.subfigures(2, 1, height_ratios=[1.0, 1.9])
     _draw_latent_energy(top, t, qp, qr, e["kinetic_pred"], e["potential_pred"],
                         e["kinetic_true"], e["potential_true"], h)
-    _draw_fields(bottom, gs, extent, t[idx], pf[idx], tf[idx], h)
+    _draw_fields(bottom, gs, extent, t[idx], pf[idx], tf[idx], h, field_label)
     if title:
         fig.suptitle(title)
     return fig

@@ -110,10 +110,20 @@ class ReducedModel(nn.Module):
     def rollout(self, q0: Tensor, v0: Tensor, dt: float, steps: int,
                 integrator: "str | Integrator | dict" = "implicit_midpoint", record_every: int = 1,
                 quadrature: "Quadrature | QuadratureRule | None" = None,
-                on_divergence: str = "raise") -> Trajectory:
-        """Integrate the reduced dynamics from (q̃0, q̃̇0) (B, d) for `steps` steps of `dt` [s]."""
+                on_divergence: str = "raise", controls: Optional[Tensor] = None) -> Trajectory:
+        """Integrate the reduced dynamics from (q̃0, q̃̇0) (B, d) for `steps` steps of `dt` [s].
+
+        `controls` (B, c): per-trajectory load parameters of a forced scene (:meth:`Scene.controls`).
+        """
+        dynamics = self.dynamics(quadrature)
+        if controls is not None:
+            if not hasattr(dynamics, "controls"):
+                raise ValueError(f"{type(dynamics).__name__} takes no external loads, but controls were given")
+            if controls.ndim != 2 or controls.shape[0] != q0.shape[0]:
+                raise ValueError(f"controls must have shape (B={q0.shape[0]}, c), got {tuple(controls.shape)}")
+            dynamics.controls = controls.to(q0)
         with torch.no_grad():
-            return get_integrator(integrator).integrate(self.dynamics(quadrature), q0, v0, dt, steps,
+            return get_integrator(integrator).integrate(dynamics, q0, v0, dt, steps,
                                                         record_every=record_every, on_divergence=on_divergence)
 
     def energy(self, q: Tensor, v: Tensor, quadrature: "Quadrature | QuadratureRule | None" = None

@@ -172,3 +172,22 @@ def test_latent_dynamics_need_a_neural_field(tmp_path):
     cfg = compose_config("train", ["+experiment=pendulum", "model=pod", "dynamics=latent_mlp"], tmp_path)
     with pytest.raises(ValueError, match="needs model=lnf"):
         train(cfg)
+
+
+SCENE_EXPERIMENTS = {
+    "double_pendulum": [],
+    "bump": [],
+    "elastic": ["scene.mesh=[6,3]"],
+    "elastic_actuated": ["scene.mesh=[6,3]"],
+}
+
+
+@pytest.mark.parametrize("experiment", sorted(SCENE_EXPERIMENTS))
+def test_every_scene_experiment_trains_and_evaluates(experiment, tmp_path):
+    cfg = compose_config("train", [f"+experiment={experiment}", "trainer=smoke", "logger=csv", *TINY,
+                                   *SCENE_EXPERIMENTS[experiment]], tmp_path)
+    metrics = train(cfg)
+    assert {"field_rel_l2/all/median", "vpt/median", "energy_rel_err/max"} <= set(metrics)
+    assert metrics["train_seconds"] > 0
+    model = lnf.load(Path(cfg.paths.output_dir) / "checkpoints" / "last.ckpt")
+    assert model.scene.name == experiment.split("_actuated")[0] and model.latent_dim == cfg.model.latent_dim

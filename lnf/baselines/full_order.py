@@ -31,6 +31,9 @@ class NodalDynamics:
         if self.potential_fn.needs_gradient:
             raise NotImplementedError(f"the nodal full-order model of scene {scene.name!r} needs ∇_X q on the grid; "
                                       "this scene provides its own full-order simulator instead")
+        if scene.kinetic_correction(quadrature) is not None or scene.generalized_force(quadrature) is not None:
+            raise NotImplementedError(f"the nodal full-order model has only the flat kinetic energy and no external "
+                                      f"forces; scene {scene.name!r} needs more, and its own simulator is the reference")
         self.A = scene.field_dim
         mass = (quadrature.weights * scene.density(quadrature.points))  # (N,)
         self.mass = mass[:, None].expand(-1, self.A).reshape(-1)  # (N·A,)

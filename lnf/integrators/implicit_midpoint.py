@@ -3,7 +3,8 @@
 For H(q̃, p̃) = ½ p̃ᵀ M̃(q̃)⁻¹ p̃ + Ṽ(q̃) a step solves
     q̃₁ = q̃₀ + h ∂H/∂p̃(q̃ₘ, p̃ₘ),   p̃₁ = p̃₀ − h ∂H/∂q̃(q̃ₘ, p̃ₘ),   (·)ₘ = ((·)₀ + (·)₁)/2,
 with ∂H/∂p̃ = q̃̇ = M̃⁻¹p̃ and ∂H/∂q̃ = g̃ − ∂T̃/∂q̃|_{q̃̇}, by fixed-point iteration from the previous step's
-increments; a trajectory whose iteration does not converge in `max_iter` is reported as diverged.
+increments; rows it does not converge in `max_iter` iterations are solved by Newton's method (`newton`),
+and a trajectory that neither converges is reported as diverged.
 `order=4` composes three midpoint steps (Suzuki–Yoshida triple jump): still symplectic,
 fourth order, energy error O(h⁴).
 """
@@ -19,7 +20,7 @@ class ImplicitMidpoint(FixedStepIntegrator):
     name = "implicit_midpoint"
 
     def __init__(self, substeps: int = 1, order: int = 2, tol: float = 1e-12, max_iter: int = 50,
-                 max_abs: float = 1e6) -> None:
+                 max_abs: float = 1e6, newton: bool = False) -> None:
         super().__init__(substeps=substeps, max_abs=max_abs)
         if order not in (2, 4):
             raise ValueError(f"integrator.order must be 2 or 4 for implicit_midpoint, got {order!r}")
@@ -33,6 +34,9 @@ class ImplicitMidpoint(FixedStepIntegrator):
             g1 = 1.0 / (2.0 - c)
             self.fractions = [g1, -c * g1, g1]
         self.iterations: list[int] = []  # fixed-point iterations per midpoint solve (diagnostics)
+        self.newton = bool(newton)
+        self.newton_iter = 10  # Newton converges quadratically: 10 iterations or the row is diverging
+        self.newton_solves = 0  # midpoint solves that needed Newton's method (diagnostics)
 
     def __repr__(self) -> str:
         return f"ImplicitMidpoint(order={self.order}, substeps={self.substeps}, tol={self.tol:g})"
@@ -53,8 +57,14 @@ class ImplicitMidpoint(FixedStepIntegrator):
         return super()._bad(xs[0], xs[1])
 
     def _midpoint(self, dynamics, q: Tensor, p: Tensor, rq: Tensor, rp: Tensor, h: float, t: float):
-        """Solve one midpoint step; returns rates (Δq/h, Δp/h). Rows that do not converge become NaN."""
+        """Solve one midpoint step; returns rates (Δq/h, Δp/h). Rows that do not converge become NaN.
+
+        Fixed-point iteration first (cheap, converges when h is small against the fastest time scale);
+        rows it leaves unconverged after `max_iter` go to Newton's method (if `newton`), whose Jacobian comes
+        from 2d forward-mode products through the dynamics (exact, no finite differences).
+        """
         tol = max(self.tol, 16 * torch.finfo(q.dtype).eps) * (1.0 + q.abs().amax(-1) + p.abs().amax(-1))
+        guess = (rq, rp)  # Newton restarts from the predictor, not from a fixed-point iterate that ran away
         for it in range(1, self.max_iter + 1):
             vm, force = dynamics.hamiltonian_derivatives(q + 0.5 * h * rq, p + 0.5 * h * rp, t + 0.5 * h)
             err = torch.maximum((vm - rq).abs().amax(-1), (force - rp).abs().amax(-1)) * abs(h)
@@ -62,10 +72,56 @@ class ImplicitMidpoint(FixedStepIntegrator):
             if bool((err <= tol).all()):
                 self.iterations.append(it)
                 return rq, rp
-        self.iterations.append(self.max_iter)
+        self.iterations.append(it)
         failed = ~(err <= tol)
+        if self.newton:
+            rq, rp, failed = self._newton(dynamics, q, p, *guess, h, t, tol, failed, fallback=(rq, rp))
         nan = torch.tensor(float("nan"), dtype=q.dtype, device=q.device)
         return torch.where(failed[:, None], nan, rq), torch.where(failed[:, None], nan, rp)
+
+    def _newton(self, dynamics, q: Tensor, p: Tensor, rq: Tensor, rp: Tensor, h: float, t: float, tol: Tensor,
+                rows: Tensor, fallback: tuple[Tensor, Tensor]) -> tuple[Tensor, Tensor, Tensor]:
+        """Newton's method on r = f(z₀ + h r / 2) from the guess (rq, rp) for the rows `rows` (B,).
+
+        Returns the rates (`fallback` in the other rows) and the rows still failing."""
+        from torch.func import jvp
+
+        idx = rows.nonzero().flatten()
+        d = q.shape[-1]
+        q0, p0 = q[idx], p[idx]
+        controls = getattr(dynamics, "controls", None)
+        if controls is not None:
+            dynamics.controls = controls[idx]
+        start = torch.cat([rq[idx], rp[idx]], -1)
+        r = torch.where(torch.isfinite(start), start, torch.zeros_like(start))
+
+        def rates(x: Tensor) -> Tensor:
+            vm, force = dynamics.hamiltonian_derivatives(q0 + 0.5 * h * x[:, :d], p0 + 0.5 * h * x[:, d:], t + 0.5 * h)
+            return torch.cat([vm, force], -1)
+
+        eye = torch.eye(2 * d, dtype=q.dtype, device=q.device)
+        err = torch.full((len(idx),), float("inf"), dtype=q.dtype, device=q.device)
+        try:
+            for _ in range(self.newton_iter):
+                columns = []
+                for k in range(2 * d):
+                    value, column = jvp(rates, (r,), (eye[k].expand_as(r),))
+                    columns.append(column)
+                jac = torch.stack(columns, -1)  # ∂f/∂r (n, 2d, 2d)
+                delta = torch.linalg.solve(eye - jac, value - r)
+                r = r + delta
+                err = delta.abs().amax(-1) * abs(h)
+                if bool((err <= tol[idx]).all()) or not bool(torch.isfinite(r).any()):
+                    break
+        finally:
+            if controls is not None:
+                dynamics.controls = controls
+        ok = torch.isfinite(r).all(-1) & (err <= tol[idx])
+        rq, rp, still = fallback[0].clone(), fallback[1].clone(), rows.clone()
+        rq[idx], rp[idx] = r[:, :d], r[:, d:]
+        still[idx] = ~ok
+        self.newton_solves += 1
+        return rq, rp, still
 
     def step(self, dynamics, state: tuple[Tensor, ...], h: float, t: float) -> tuple[Tensor, ...]:
         q, p, rq, rp = state

@@ -1,7 +1,12 @@
 """Scenes: bodies with a Lagrangian and a full-order simulator for ground truth."""
-from lnf.scenes.base import DiscretePotential, Scene
+from lnf.scenes.base import DiscretePotential, GeneralizedForce, ModalKinetic, Scene
+from lnf.scenes.bump import BumpPendulum
+from lnf.scenes.double_pendulum import LiftedDoublePendulum
+from lnf.scenes.elastic import ElasticCantilever
 from lnf.scenes.pendulum import LiftedPendulum
 
-SCENES: dict[str, type[Scene]] = {"pendulum": LiftedPendulum}
+SCENES: dict[str, type[Scene]] = {"pendulum": LiftedPendulum, "double_pendulum": LiftedDoublePendulum,
+                                  "bump": BumpPendulum, "elastic": ElasticCantilever}
 
-__all__ = ["DiscretePotential", "Scene", "LiftedPendulum", "SCENES"]
+__all__ = ["DiscretePotential", "GeneralizedForce", "ModalKinetic", "Scene", "LiftedPendulum",
+           "LiftedDoublePendulum", "BumpPendulum", "ElasticCantilever", "SCENES"]

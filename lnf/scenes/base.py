@@ -35,6 +35,52 @@ class DiscretePotential:
         return vmap(grad(lambda a: self(a[None])[0]))(q), None
 
 
+class ModalKinetic:
+    """Kinetic energy beyond the flat ½∫ω0‖q̇‖²: ½ aᵀ C(θ) a with θ = P q and a = P q̇ (mode projections).
+
+    For a finite-dimensional mechanical system lifted into a field along m modes (the double pendulum),
+    T(q, q̇) = ½∫ω0‖q̇‖² + ½ aᵀ (M(θ) − κ I) a, so that on the modes the metric is M(θ) and off them the
+    flat κ = ω0. Subclasses give C(θ) = M(θ) − κI, its Coriolis vector and ∂T_C/∂θ in closed form.
+
+    Attributes:
+        weighted_modes: P (m, N, A), θ_i = Σ_{j,a} P_{ija} q_{ja} (quadrature weights folded in).
+    """
+
+    def __init__(self, weighted_modes: Tensor) -> None:
+        self.weighted_modes = weighted_modes
+
+    def angles(self, x: Tensor) -> Tensor:
+        """θ = P x for fields x (B, N, A) → (B, m); for a jet's J (B, N, A, d) → (B, m, d) etc."""
+        return torch.einsum("mna,bna...->bm...", self.weighted_modes.to(x), x)
+
+    def matrix(self, theta: Tensor) -> Tensor:  # pragma: no cover - interface
+        """C(θ) (B, m, m)."""
+        raise NotImplementedError
+
+    def coriolis(self, theta: Tensor, theta_dot: Tensor) -> Tensor:  # pragma: no cover - interface
+        """(dC/dt) θ̇ − ∂T_C/∂θ (B, m): the Coriolis/centrifugal vector of T_C = ½ θ̇ᵀ C(θ) θ̇."""
+        raise NotImplementedError
+
+    def gradient(self, theta: Tensor, theta_dot: Tensor) -> Tensor:  # pragma: no cover - interface
+        """∂T_C/∂θ at fixed θ̇ (B, m)."""
+        raise NotImplementedError
+
+
+class GeneralizedForce:
+    """Non-conservative generalized forces (damping, actuation) on fields sampled at quadrature points.
+
+    ``field_force(t, q, v, controls)`` returns the force density f (B, N, A) per unit reference volume at the
+    points, so that the reduced generalized force is τ̃ = Σ_j w_j J_jᵀ f_j (B, d). `controls` (B, c) are the
+    per-trajectory load parameters of :meth:`Scene.controls` (or None).
+    """
+
+    def __init__(self, weights: Tensor) -> None:
+        self.weights = weights
+
+    def field_force(self, t: float, q: Tensor, v: Tensor, controls: Optional[Tensor]) -> Tensor:  # pragma: no cover
+        raise NotImplementedError
+
+
 class Scene:
     """Base class of scenes. Subclasses set the attributes and implement the methods below.
 
@@ -63,6 +109,18 @@ class Scene:
 
     def potential(self, quadrature: Quadrature) -> DiscretePotential:
         raise NotImplementedError
+
+    def kinetic_correction(self, quadrature: Quadrature) -> Optional[ModalKinetic]:
+        """Kinetic energy beyond ½∫ω0‖q̇‖² (None: the flat metric is the whole kinetic energy)."""
+        return None
+
+    def generalized_force(self, quadrature: Quadrature) -> Optional[GeneralizedForce]:
+        """Non-conservative forces (None: the scene is conservative)."""
+        return None
+
+    def controls(self, states: np.ndarray) -> Optional[np.ndarray]:
+        """Per-trajectory load parameters (n, c) read from full-order initial states (n, S), or None."""
+        return None
 
     # -- the full-order model ------------------------------------------------------------------
     def sample_initial_states(self, n: int, rng: np.random.Generator) -> np.ndarray:

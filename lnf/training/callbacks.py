@@ -32,6 +32,9 @@ def write_json_atomic(path: str | Path, payload: dict[str, Any]) -> Path:
     return path
 
 
+_SUB = "₀₁₂₃₄₅₆₇₈₉"
+
+
 def save_evaluation_figures(result: RolloutEvaluation, scene: Any, grid_shape: tuple[int, ...],
                             train_horizon: float, out_dir: Path, prefix: str, n_trajectories: int = 2) -> list[Path]:
     """Figure 3 (latent, energies, fields and errors before/after the horizon) for the first trajectories."""
@@ -39,11 +42,13 @@ def save_evaluation_figures(result: RolloutEvaluation, scene: Any, grid_shape: t
 
     paths = []
     idx = default_snapshot_indices(result.times, train_horizon)
+    comp = scene.field_dim - 1  # vector fields: the last component (the vertical displacement of the elastic body)
+    label = "field q" if scene.field_dim == 1 else f"field component q{_SUB[comp + 1]}"
     for i in range(min(n_trajectories, result.q_pred.shape[0])):
         energies = {k: v[i] for k, v in result.energies.items()}
         fig = figure3(result.times, result.q_pred[i], result.q_ref[i], energies, grid_shape, scene.bounds,
-                      result.pred_fields[i, ..., 0], result.true_fields[i, ..., 0], idx, train_horizon,
-                      title=f"{prefix} trajectory {i}")
+                      result.pred_fields[i, ..., comp], result.true_fields[i, ..., comp], idx, train_horizon,
+                      title=f"{prefix} trajectory {i}", field_label=label)
         paths.append(save_figure(fig, out_dir / f"{prefix}_trajectory{i}.png"))
     return paths
 

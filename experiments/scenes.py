@@ -1,0 +1,299 @@
+"""Acceptance measurements of the scenes beyond the pendulum, from their trained checkpoints.
+
+    python -m lnf.train +experiment=<scene> hydra.run.dir=outputs/issue4/<scene>   # train first
+    python experiments/scenes.py --scene double_pendulum   # vpt and 20x-horizon energy drift vs the black box
+    python experiments/scenes.py --scene bump              # error against number of modes: ours (d = 1) vs POD
+    python experiments/scenes.py --scene elastic           # accuracy, energy, speed-up over the FEM model
+    python experiments/scenes.py --scene elastic_actuated  # damping and a load not seen in training
+
+Each writes ``outputs/scenes/<scene>/{results.json, summary.md, *.png}``. Every number is measured here,
+in one process, on the machine it runs on (threads: all cores unless --threads).
+"""
+from __future__ import annotations
+
+import argparse
+import copy
+import json
+import platform
+import sys
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from lnf.baselines.latent_mlp import LatentMLPDynamics  # noqa: E402
+from lnf.baselines.pod import PODGalerkin  # noqa: E402
+from lnf.evaluation import evaluate_rollouts, long_horizon_energy  # noqa: E402
+from lnf.model import load  # noqa: E402
+from lnf.plotting import save_figure  # noqa: E402
+from lnf.train import fit_latent_dynamics  # noqa: E402
+from lnf.training.callbacks import write_json_atomic  # noqa: E402
+from lnf.training.datamodule import SnapshotDataModule  # noqa: E402
+
+
+def datamodule_of(model: Any) -> SnapshotDataModule:
+    """The checkpoint's own dataset (regenerated if missing)."""
+    data = dict(model.checkpoint.get("data") or {})
+    if not data:
+        raise SystemExit("the checkpoint records no data settings")
+    dm = SnapshotDataModule(scene=model.scene, **data)
+    dm.prepare_data()
+    return dm
+
+
+def evaluate(model: Any, split: Any, integrator: Any = None, states: np.ndarray | None = None,
+             stride: int = 1) -> Any:
+    """Roll out the split (or `states`, re-simulated ground truth) on the stored fine grid; `stride` subsamples time.
+
+    Default integrator: the implicit midpoint rule of order 2 (see MIDPOINT)."""
+    integrator = MIDPOINT if integrator is None else integrator
+    train_horizon = float(split.times[split.train_times])
+    if states is None:
+        return evaluate_rollouts(model, split.states[:, ::stride], split.times[::stride], split.fine_points,
+                                 train_horizon, true_fields=split.fields[:, ::stride],
+                                 true_velocities=split.velocities[:, ::stride], integrator=integrator)
+    return evaluate_rollouts(model, states[:, ::stride], split.times[::stride], split.fine_points, train_horizon,
+                             integrator=integrator)
+
+
+# the structure-preserving integrator of these scenes: order 2 (the order-4 composition's backward substep
+# leaves some double-pendulum rollouts unsolved at dt = 0.05)
+MIDPOINT = {"name": "implicit_midpoint", "order": 2}
+
+
+def pick(metrics: dict[str, float], *keys: str) -> dict[str, float]:
+    return {k: float(metrics[k]) for k in keys if k in metrics}
+
+
+# ---------------------------------------------------------------------------------------------------------
+def double_pendulum(model: Any, dm: SnapshotDataModule, out: Path) -> dict[str, Any]:
+    split = dm.split("test")
+    ours = evaluate(model, split)
+    black_box = copy.deepcopy(model)
+    black_box.latent_dynamics = LatentMLPDynamics(latent_dim=model.latent_dim)
+    fit = fit_latent_dynamics(black_box, dm)
+    bb = evaluate(black_box, split, "rk4")
+    dt = float(split.times[1] - split.times[0])
+    horizon = float(split.times[split.train_times])
+    steps = int(round(20 * horizon / dt))
+    states0 = split.states[:, 0]
+    drift_ours = long_horizon_energy(model, states0, split.fine_points, dt, steps, MIDPOINT)
+    drift_bb = long_horizon_energy(black_box, states0, split.fine_points, dt, steps, "rk4")
+    keys = ("vpt/median", "vpt/min", "field_rel_l2/in_horizon/median", "field_rel_l2/all/median",
+            "projection_rel_l2/all/median", "energy_rel_err/median", "diverged_fraction")
+    result = {"ours": {**pick(ours.metrics, *keys), **drift_ours}, "black_box": {**pick(bb.metrics, *keys), **drift_bb},
+              "black_box_fit": fit, "long_steps": steps, "long_horizon_s": steps * dt}
+    result["drift_ratio_median"] = drift_bb["energy_drift_long/median"] / max(drift_ours["energy_drift_long/median"], 1e-300)
+    vpt_ours = np.asarray(M_vpt(ours))
+    vpt_bb = np.asarray(M_vpt(bb))
+    import matplotlib.pyplot as plt
+    fig, ax = plt.subplots(figsize=(5, 3.2))
+    ax.hist([vpt_ours, vpt_bb], bins=10, label=[f"ours (median {np.median(vpt_ours):.2f} s)",
+                                                 f"black box (median {np.median(vpt_bb):.2f} s)"])
+    ax.axvline(horizon, color="k", ls="--", lw=0.8)
+    ax.set_xlabel("valid prediction time [s]")
+    ax.set_ylabel("test trajectories")
+    ax.legend(fontsize=8)
+    save_figure(fig, out / "vpt.png")
+    return result
+
+
+def M_vpt(evaluation: Any) -> np.ndarray:
+    from lnf import metrics as M
+    w = np.full(len(evaluation.points), 1.0 / len(evaluation.points))
+    return M.valid_prediction_time(evaluation.pred_fields, evaluation.true_fields, w, evaluation.times)
+
+
+# ---------------------------------------------------------------------------------------------------------
+def bump(model: Any, dm: SnapshotDataModule, out: Path, max_modes: int = 12) -> dict[str, Any]:
+    split = dm.split("test")
+    ours = evaluate(model, split)
+    points, values, velocities = (torch.as_tensor(a, dtype=torch.float64) for a in dm.observations("train"))
+    pod_rows = []
+    for k in range(1, max_modes + 1):
+        pod = PODGalerkin(model.scene, latent_dim=k, degree=24).double()
+        pod.fit_to_observations(points, values)
+        metrics = evaluate(pod, split).metrics
+        pod_rows.append({"k": k, **pick(metrics, "field_rel_l2/all/median", "projection_rel_l2/all/median",
+                                        "diverged_fraction")})
+        print(f"POD k={k}: {pod_rows[-1]}", flush=True)
+    # the best any k-mode linear model can do: SVD of the full fine-grid training fields, projection of the test fields
+    train = dm.split("train")
+    X = train.fields[:, :train.train_times, :, 0].reshape(-1, train.fields.shape[2]).astype(np.float64)
+    mean = X.mean(0)
+    _, _, Vt = np.linalg.svd(X - mean, full_matrices=False)
+    Y = split.fields[..., 0].astype(np.float64)
+    oracle = []
+    for k in range(1, max_modes + 1):
+        R = mean + ((Y - mean) @ Vt[:k].T) @ Vt[:k]
+        oracle.append(float(np.median(np.sqrt(((R - Y) ** 2).sum((1, 2)) / (Y**2).sum((1, 2))))))
+    ours_err = float(ours.metrics["field_rel_l2/all/median"])
+    needed = next((r["k"] for r in pod_rows if r["field_rel_l2/all/median"] <= ours_err), None)
+    needed_oracle = next((k + 1 for k, e in enumerate(oracle) if e <= ours_err), None)
+    import matplotlib.pyplot as plt
+    fig, ax = plt.subplots(figsize=(5, 3.4))
+    ks = [r["k"] for r in pod_rows]
+    ax.semilogy(ks, [r["field_rel_l2/all/median"] for r in pod_rows], "s-", label="POD-Galerkin rollout")
+    ax.semilogy(range(1, max_modes + 1), oracle, "k:", label="best linear k-mode projection (full-grid SVD)")
+    ax.semilogy([1], [ours_err], "o", ms=9, color="C3", label=f"ours, d = 1 ({ours_err:.3f})")
+    ax.axhline(ours_err, color="C3", lw=0.8, ls="--")
+    ax.set_xlabel("modes k (POD) / latent dimension d (ours)")
+    ax.set_ylabel("test field_rel_l2 (all, median)")
+    ax.legend(fontsize=8)
+    save_figure(fig, out / "modes.png")
+    return {"ours": pick(ours.metrics, "field_rel_l2/all/median", "field_rel_l2/in_horizon/median",
+                         "field_rel_l2/extrapolation/median", "projection_rel_l2/all/median", "energy_rel_err/median"),
+            "pod": pod_rows, "oracle_projection": oracle, "pod_modes_to_match_ours": needed,
+            "oracle_modes_to_match_ours": needed_oracle}
+
+
+# ---------------------------------------------------------------------------------------------------------
+def _timed(fn: Callable[[], Any], repeats: int = 2) -> tuple[float, Any]:
+    best, result = float("inf"), None
+    for _ in range(repeats):
+        start = time.perf_counter()
+        result = fn()
+        best = min(best, time.perf_counter() - start)
+    return best, result
+
+
+def elastic(model: Any, dm: SnapshotDataModule, out: Path, target: float = 0.05) -> dict[str, Any]:
+    scene, split = model.scene, dm.split("test")
+    times = split.times
+    in_h = times < times[split.train_times]
+    base = evaluate(model, split)
+    result: dict[str, Any] = {"ours": pick(base.metrics, "field_rel_l2/in_horizon/median", "field_rel_l2/in_horizon/max",
+                                           "field_rel_l2/all/median", "field_rel_l2/extrapolation/median",
+                                           "projection_rel_l2/in_horizon/median", "energy_rel_err/median",
+                                           "energy_drift/max", "vpt/median")}
+    long = long_horizon_energy(model, split.states[:4, 0], split.fine_points, float(times[1] - times[0]), 1000,
+                               MIDPOINT)
+    result["ours"].update(long)
+    # full-order model: largest stable step that meets the target against the ground truth, in the horizon
+    states0 = split.states[:, 0]
+    cfl = scene.time_step / scene.cfl_fraction
+    fom = []
+    for frac in (0.5, 0.6, 0.7, 0.8, 0.9):
+        try:
+            seconds, states = _timed(lambda: scene.simulate(states0, times[in_h], time_step=frac * cfl), repeats=1)
+        except RuntimeError:
+            fom.append({"cfl_fraction": frac, "stable": False})
+            continue
+        u = states[..., :2 * scene.n_nodes]
+        ref = split.states[:, in_h, :2 * scene.n_nodes]
+        err = float(np.median(np.sqrt(((u - ref) ** 2).sum((1, 2)) / np.maximum((ref**2).sum((1, 2)), 1e-300))))
+        fom.append({"cfl_fraction": frac, "stable": True, "seconds": seconds, "nodal_rel_l2": err})
+        print("FOM", fom[-1], flush=True)
+    ok = [r for r in fom if r.get("stable") and r["nodal_rel_l2"] <= target]
+    fom_best = ok[-1] if ok else None
+    # reduced model: largest sample step (rollout step) that meets the target
+    rom = []
+    for stride in (1, 2, 4):
+        ev = evaluate(model, split, stride=stride)
+        rom.append({"dt": float(times[stride] - times[0]), "field_rel_l2/in_horizon/median":
+                    float(ev.metrics["field_rel_l2/in_horizon/median"]),
+                    "diverged_fraction": float(ev.metrics["diverged_fraction"])})
+        print("ROM", rom[-1], flush=True)
+    rom_ok = [r for r in rom if r["field_rel_l2/in_horizon/median"] <= target and r["diverged_fraction"] == 0]
+    rom_best = rom_ok[-1] if rom_ok else rom[0]
+    # the speed-up, measured back to back: the same trajectories over the training horizon
+    pts = torch.as_tensor(split.fine_points, dtype=model.reference_tensor().dtype)
+    q0 = model.reduce(pts[::4], torch.as_tensor(split.fields[:, 0, ::4], dtype=pts.dtype))
+    v0 = model.project_velocity(q0, pts[::4], torch.as_tensor(split.velocities[:, 0, ::4], dtype=pts.dtype))
+    steps = int(round(times[in_h][-1] / rom_best["dt"]))
+    controls = scene.controls(states0)
+    controls = None if controls is None else torch.as_tensor(controls, dtype=q0.dtype)
+    roll = lambda n: model.rollout(q0, v0, dt=rom_best["dt"], steps=n, integrator=MIDPOINT,  # noqa: E731
+                                   on_divergence="mark", controls=controls)
+    roll(2)  # warm-up
+    rom_seconds, _ = _timed(lambda: roll(steps))
+    fom_frac = fom_best["cfl_fraction"] if fom_best else 0.5
+    fom_seconds, _ = _timed(lambda: scene.simulate(states0, times[in_h], time_step=fom_frac * cfl))
+    result.update(fom=fom, rom=rom, fom_cfl_fraction=fom_frac, rom_dt=rom_best["dt"], rom_seconds=rom_seconds,
+                  fom_seconds=fom_seconds, speedup=fom_seconds / rom_seconds, trajectories=len(states0),
+                  horizon_s=float(times[in_h][-1]), fom_nodes=scene.n_nodes, fom_mesh=scene.mesh_shape)
+    import matplotlib.pyplot as plt
+    fig, ax = plt.subplots(figsize=(5, 3.2))
+    e = base.energies
+    for i in range(min(3, len(e["kinetic_pred"]))):
+        ax.plot(times, (e["kinetic_pred"][i] + e["potential_pred"][i]) / scene.energy_scale, color=f"C{i}")
+        ax.plot(times, (e["kinetic_true"][i] + e["potential_true"][i]) / scene.energy_scale, color=f"C{i}", ls=":")
+    ax.axvline(times[split.train_times], color="k", ls="--", lw=0.8)
+    ax.set_xlabel("t [s]")
+    ax.set_ylabel("energy / E_scale (solid ours, dotted FEM)")
+    save_figure(fig, out / "energy.png")
+    return result
+
+
+def elastic_actuated(model: Any, dm: SnapshotDataModule, out: Path) -> dict[str, Any]:
+    scene, split = model.scene, dm.split("test")
+    base = evaluate(model, split)
+    times = split.times
+    # damping: free decay (no load) from the test initial shapes
+    u0, v0, load = scene.unpack(split.states[:, 0])
+    free = scene.pack(u0, v0, np.zeros_like(load))
+    decay = evaluate(model, split, states=scene.simulate(free, times))
+    e = decay.energies
+    pred = e["kinetic_pred"] + e["potential_pred"]
+    true = e["kinetic_true"] + e["potential_true"]
+    # a load outside the training range: frequency 1.2 Hz (training 0.3–0.7 Hz), amplitude 0.5
+    unseen_load = np.tile([[0.5, 1.2]], (len(load), 1))
+    unseen = evaluate(model, split, states=scene.simulate(scene.pack(u0, v0, unseen_load), times))
+    import matplotlib.pyplot as plt
+    fig, ax = plt.subplots(figsize=(5, 3.2))
+    for i in range(3):
+        ax.plot(times, pred[i] / scene.energy_scale, color=f"C{i}")
+        ax.plot(times, true[i] / scene.energy_scale, color=f"C{i}", ls=":")
+    ax.set_xlabel("t [s]")
+    ax.set_ylabel("energy / E_scale (solid ours, dotted FEM)")
+    ax.set_title(f"free decay, α = {scene.damping} 1/s")
+    save_figure(fig, out / "decay.png")
+    rise = np.max(np.diff(pred, axis=1), axis=1) / scene.energy_scale
+    keys = ("field_rel_l2/all/median", "field_rel_l2/all/max", "field_rel_l2/in_horizon/median",
+            "field_rel_l2/extrapolation/median", "energy_rel_err/median", "diverged_fraction")
+    return {"test": pick(base.metrics, *keys), "unseen_load": {"amplitude": 0.5, "frequency_hz": 1.2,
+                                                                 **pick(unseen.metrics, *keys)},
+            "free_decay": {**pick(decay.metrics, *keys),
+                           "energy_ratio_end_over_start_ours_median": float(np.median(pred[:, -1] / pred[:, 0])),
+                           "energy_ratio_end_over_start_fem_median": float(np.median(true[:, -1] / true[:, 0])),
+                           "largest_energy_rise_per_sample_over_scale": float(np.max(rise))}}
+
+
+SCENES = {"double_pendulum": double_pendulum, "bump": bump, "elastic": elastic, "elastic_actuated": elastic_actuated}
+
+
+def main(argv: list[str] | None = None) -> dict[str, Any]:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--scene", required=True, choices=sorted(SCENES))
+    parser.add_argument("--ckpt", default=None, help="default: outputs/issue4/<scene>/checkpoints/last.ckpt")
+    parser.add_argument("--out", default=None, help="default: outputs/scenes/<scene>")
+    parser.add_argument("--threads", type=int, default=None)
+    args = parser.parse_args(argv)
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    ckpt = Path(args.ckpt or ROOT / "outputs" / "issue4" / args.scene / "checkpoints" / "last.ckpt")
+    if not ckpt.exists():
+        raise SystemExit(f"no checkpoint at {ckpt}; train first: python -m lnf.train +experiment={args.scene} "
+                         f"hydra.run.dir=outputs/issue4/{args.scene}")
+    out = Path(args.out or ROOT / "outputs" / "scenes" / args.scene)
+    out.mkdir(parents=True, exist_ok=True)
+    model = load(ckpt)
+    model.eval()
+    start = time.perf_counter()
+    result = SCENES[args.scene](model, datamodule_of(model), out)
+    result["seconds"] = time.perf_counter() - start
+    result["checkpoint"] = str(ckpt)
+    result["machine"] = {"platform": platform.platform(), "processor": platform.processor(),
+                         "torch": torch.__version__, "threads": torch.get_num_threads()}
+    write_json_atomic(out / "results.json", result)
+    print(json.dumps(result, indent=1, default=str))
+    return result
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,115 @@
+"""A small, fast finite-element model of a 2-D St Venant–Kirchhoff body (plane strain), in numpy.
+
+Bilinear (Q1) elements on a structured nx × ny grid of the box [0, L] × [0, H], 2×2 Gauss quadrature,
+row-sum lumped mass. Displacements u (B, n_nodes, 2) are batched over trajectories; nodes are numbered
+i·(ny+1) + j for the node at (i·hx, j·hy). The stored energy is W(F) = μ E:E + ½ λ (tr E)² with
+E = ½(FᵀF − I), F = I + ∇_X u; the first Piola–Kirchhoff stress is P = F (λ tr E I + 2 μ E).
+"""
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+
+GAUSS = np.array([-1.0, 1.0]) / np.sqrt(3.0)
+CORNERS = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]], dtype=np.float64)  # counter-clockwise
+
+
+def lame(young: float, poisson: float) -> tuple[float, float]:
+    """(λ, μ) from Young's modulus and Poisson's ratio."""
+    return young * poisson / ((1 + poisson) * (1 - 2 * poisson)), young / (2 * (1 + poisson))
+
+
+def svk_energy_density(F: np.ndarray, lam: float, mu: float) -> np.ndarray:
+    """W(F) for F (…, 2, 2) → (…)."""
+    E = 0.5 * (np.swapaxes(F, -1, -2) @ F - np.eye(2))
+    trace = E[..., 0, 0] + E[..., 1, 1]
+    return mu * np.sum(E * E, axis=(-1, -2)) + 0.5 * lam * trace**2
+
+
+def svk_stress(F: np.ndarray, lam: float, mu: float) -> np.ndarray:
+    """First Piola–Kirchhoff stress P = F S(E) (…, 2, 2)."""
+    E = 0.5 * (np.swapaxes(F, -1, -2) @ F - np.eye(2))
+    trace = E[..., 0, 0] + E[..., 1, 1]
+    S = 2 * mu * E + lam * trace[..., None, None] * np.eye(2)
+    return F @ S
+
+
+class StructuredQ1Mesh:
+    """Nodes, elements, shape-function gradients, lumped areas and interpolation of a Q1 box mesh."""
+
+    def __init__(self, length: float, height: float, nx: int, ny: int) -> None:
+        self.length, self.height, self.nx, self.ny = float(length), float(height), int(nx), int(ny)
+        self.hx, self.hy = self.length / nx, self.height / ny
+        ii, jj = np.meshgrid(np.arange(nx + 1), np.arange(ny + 1), indexing="ij")
+        self.nodes = np.stack([ii.ravel() * self.hx, jj.ravel() * self.hy], -1)  # (nn, 2)
+        ei, ej = np.meshgrid(np.arange(nx), np.arange(ny), indexing="ij")
+        ei, ej = ei.ravel(), ej.ravel()
+        corner = lambda di, dj: (ei + di) * (ny + 1) + ej + dj  # noqa: E731
+        self.elements = np.stack([corner(0, 0), corner(1, 0), corner(1, 1), corner(0, 1)], -1)  # (ne, 4)
+        # ∂N_a/∂X at the 4 Gauss points (identical for every element of a structured mesh): (4g, 4a, 2)
+        gp = np.array([[x, y] for x in GAUSS for y in GAUSS])
+        dN = np.empty((4, 4, 2))
+        for g, (xi, eta) in enumerate(gp):
+            dN[g, :, 0] = 0.25 * CORNERS[:, 0] * (1 + CORNERS[:, 1] * eta) * 2 / self.hx
+            dN[g, :, 1] = 0.25 * CORNERS[:, 1] * (1 + CORNERS[:, 0] * xi) * 2 / self.hy
+        self.dN = dN
+        self.gauss_weight = self.hx * self.hy / 4.0
+        ne = len(self.elements)
+        self.assembly = sp.csr_matrix((np.ones(4 * ne), (self.elements.ravel(), np.arange(4 * ne))),
+                                      shape=(len(self.nodes), 4 * ne))
+        self.nodal_area = self.assembly @ np.full(4 * ne, self.hx * self.hy / 4.0)  # (nn,)
+        self.clamped = self.nodes[:, 0] == 0.0
+
+    @property
+    def n_nodes(self) -> int:
+        return len(self.nodes)
+
+    def _displacement_gradient(self, u: np.ndarray) -> np.ndarray:
+        """∇_X u at every Gauss point as (B, ne, 4g, 2k, 2j) via two BLAS products."""
+        ue = u[:, self.elements]  # (B, ne, 4a, 2k)
+        D = self.dN.transpose(1, 0, 2).reshape(4, 8)  # (4a, 4g·2j)
+        G = np.stack([ue[..., 0] @ D, ue[..., 1] @ D], -2)  # (B, ne, 2k, 8)
+        return G.reshape(*G.shape[:2], 2, 4, 2).transpose(0, 1, 3, 2, 4)
+
+    def deformation_gradient(self, u: np.ndarray) -> np.ndarray:
+        """F = I + ∇_X u at every Gauss point: u (B, nn, 2) → (B, ne, 4, 2, 2)."""
+        return np.eye(2) + self._displacement_gradient(u)
+
+    def internal_force(self, u: np.ndarray, lam: float, mu: float) -> np.ndarray:
+        """−∂/∂u Σ_g w W(F_g) (B, nn, 2), the SVK stress written out per component (fast for 2×2)."""
+        G = self._displacement_gradient(u)
+        a, b, c, d = 1 + G[..., 0, 0], G[..., 0, 1], G[..., 1, 0], 1 + G[..., 1, 1]  # F = [[a, b], [c, d]]
+        e00 = 0.5 * (a * a + c * c - 1)
+        e11 = 0.5 * (b * b + d * d - 1)
+        e01 = 0.5 * (a * b + c * d)
+        tr = lam * (e00 + e11)
+        s00, s11, s01 = tr + 2 * mu * e00, tr + 2 * mu * e11, 2 * mu * e01
+        P = np.stack([a * s00 + b * s01, a * s01 + b * s11, c * s00 + d * s01, c * s01 + d * s11], -1)
+        P = P.reshape(*P.shape[:3], 2, 2)  # (B, ne, 4g, 2k, 2j)
+        D = self.dN.transpose(1, 0, 2).reshape(4, 8)  # (4a, 4g·2j)
+        Pk = P.transpose(0, 1, 3, 2, 4).reshape(*P.shape[:2], 2, 8)  # (B, ne, 2k, 4g·2j)
+        fe = -self.gauss_weight * (Pk @ D.T)  # (B, ne, 2k, 4a)
+        B = u.shape[0]
+        flat = fe.transpose(1, 3, 0, 2).reshape(-1, B * 2)  # (ne·4a, B·2k)
+        return (self.assembly @ flat).reshape(self.n_nodes, B, 2).transpose(1, 0, 2)
+
+    def strain_energy(self, u: np.ndarray, lam: float, mu: float) -> np.ndarray:
+        """Σ_g w W(F_g) (B,) for u (B, nn, 2)."""
+        return self.gauss_weight * svk_energy_density(self.deformation_gradient(u), lam, mu).sum((1, 2))
+
+    def interpolation(self, points: np.ndarray) -> sp.csr_matrix:
+        """Sparse (N, nn) bilinear interpolation matrix to points (N, 2) (clipped to the box)."""
+        x = np.clip(points[:, 0] / self.hx, 0, self.nx)
+        y = np.clip(points[:, 1] / self.hy, 0, self.ny)
+        i = np.minimum(np.floor(x).astype(int), self.nx - 1)
+        j = np.minimum(np.floor(y).astype(int), self.ny - 1)
+        s, t = x - i, y - j
+        rows = np.repeat(np.arange(len(points)), 4)
+        cols = np.stack([i * (self.ny + 1) + j, (i + 1) * (self.ny + 1) + j, (i + 1) * (self.ny + 1) + j + 1,
+                         i * (self.ny + 1) + j + 1], -1).ravel()
+        vals = np.stack([(1 - s) * (1 - t), s * (1 - t), s * t, (1 - s) * t], -1).ravel()
+        return sp.csr_matrix((vals, (rows, cols)), shape=(len(points), self.n_nodes))
+
+    def stable_time_step(self, lam: float, mu: float, density: float) -> float:
+        """CFL estimate h_min / c_p of explicit time stepping (c_p the dilatational wave speed)."""
+        return min(self.hx, self.hy) / np.sqrt((lam + 2 * mu) / density)

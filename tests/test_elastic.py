@@ -1,0 +1,108 @@
+"""The hyperelastic cantilever: FEM model, continuum potential, non-conservative forces (small sizes)."""
+import numpy as np
+import pytest
+import torch
+from torch.func import grad, vmap
+
+from lnf.baselines.pod import LinearEmbedding
+from lnf.dynamics import ReducedDynamics
+from lnf.quadrature import gauss_legendre_rule
+from lnf.scenes.elastic import ElasticCantilever
+from lnf.scenes.fem import StructuredQ1Mesh, lame, svk_energy_density
+
+
+@pytest.fixture
+def scene():
+    return ElasticCantilever(mesh=(10, 4))
+
+
+def test_fem_force_is_minus_the_energy_gradient(rng):
+    mesh = StructuredQ1Mesh(1.0, 0.4, 6, 3)
+    lam, mu = lame(200.0, 0.3)
+    u = 0.05 * rng.standard_normal((2, mesh.n_nodes, 2))
+    d = rng.standard_normal(u.shape)
+    eps = 1e-6
+    slope = (mesh.strain_energy(u + eps * d, lam, mu) - mesh.strain_energy(u - eps * d, lam, mu)) / (2 * eps)
+    np.testing.assert_allclose(-(mesh.internal_force(u, lam, mu) * d).sum((1, 2)), slope, rtol=1e-6)
+
+
+def test_affine_field_fem_and_continuum_energies_agree(scene):
+    """For u = A X both the FEM and the SIREN-side continuum potential are exact: |B| W(I + A) + gravity."""
+    A = np.array([[0.05, -0.02], [0.03, 0.04]])
+    u = (scene.mesh.nodes @ A.T)[None]
+    area = scene.length * scene.height
+    expected = area * svk_energy_density(np.eye(2) + A, scene.lam, scene.mu)
+    np.testing.assert_allclose(scene.mesh.strain_energy(u, scene.lam, scene.mu), expected, rtol=1e-10)
+    quad = gauss_legendre_rule([4, 4], scene.bounds).to(torch.float64)
+    q = (quad.points @ torch.as_tensor(A).T)[None]
+    G = torch.as_tensor(A).expand(1, len(quad.points), 2, 2)
+    gravity = scene.rho * scene.gravity * float(quad.weights @ q[0, :, 1])
+    V = scene.potential(quad)(q, G)
+    np.testing.assert_allclose(V.item(), expected + gravity, rtol=1e-10)
+    # the FEM's gravity potential is the same integral (row-sum lumping is exact for linear fields)
+    _, potential = scene.true_energy_parts(scene.pack(u, np.zeros_like(u), np.zeros((1, 2))))
+    np.testing.assert_allclose(potential, expected + gravity, rtol=1e-10)
+
+
+def test_potential_gradient_closed_form_matches_autograd(scene, rng):
+    quad = gauss_legendre_rule([3, 2], scene.bounds).to(torch.float64)
+    q = torch.as_tensor(0.1 * rng.standard_normal((2, len(quad.points), 2)))
+    G = torch.as_tensor(0.1 * rng.standard_normal((2, len(quad.points), 2, 2)))
+    pot = scene.potential(quad)
+    auto = vmap(grad(lambda a, b: pot(a[None], b[None])[0], argnums=(0, 1)))(q, G)
+    closed = pot.gradient(q, G)
+    torch.testing.assert_close(closed[0], auto[0])
+    torch.testing.assert_close(closed[1], auto[1])
+
+
+def test_verlet_conserves_energy_and_keeps_the_clamp(scene, rng):
+    states0 = scene.sample_initial_states(3, rng)
+    states = scene.simulate(states0, 0.05 * np.arange(21))
+    energy = scene.true_energy(states)
+    assert np.abs(energy - energy[:, :1]).max() < 0.02 * scene.energy_scale
+    u, v, _ = scene.unpack(states)
+    assert np.abs(u[:, :, scene.mesh.clamped]).max() == 0.0
+    assert np.abs(u[:, -1]).max() > 1e-3  # it moves
+
+
+def test_damping_dissipates_energy(rng):
+    scene = ElasticCantilever(mesh=(10, 4), damping=1.0)
+    states = scene.simulate(scene.sample_initial_states(3, rng), 0.05 * np.arange(21))
+    energy = scene.true_energy(states)
+    assert (np.diff(energy, axis=1) < 1e-9 * scene.energy_scale).all()
+    assert (energy[:, -1] < energy[:, 0]).all()
+    assert scene.controls(states[:, 0]).shape == (3, 2)
+
+
+def test_fields_interpolate_nodal_values(scene, rng):
+    states = scene.sample_initial_states(2, rng)
+    u, v, _ = scene.unpack(states)
+    q, qdot = scene.fields(states, scene.mesh.nodes[:7])
+    np.testing.assert_allclose(q, u[:, :7], atol=1e-12)
+    np.testing.assert_allclose(qdot, v[:, :7], atol=1e-12)
+    with pytest.raises(ValueError, match="4·"):
+        scene.unpack(states[:, :-1])
+
+
+def test_reduced_damping_force_is_minus_alpha_mass_velocity(rng):
+    """With a linear embedding, τ̃ = Σ w Jᵀ(−α ρ J v) = −α M̃ v, so the damped acceleration differs by −α v."""
+    damped = ElasticCantilever(mesh=(4, 2), damping=0.7, load_amplitude_range=(0.0, 0.0))
+    free = ElasticCantilever(mesh=(4, 2))
+    emb = LinearEmbedding(damped.bounds, latent_dim=2, out_dim=2, degree=2).double()
+    with torch.no_grad():
+        emb.modes.copy_(0.1 * torch.as_tensor(rng.standard_normal(emb.modes.shape)))
+    quad = gauss_legendre_rule([4, 4], damped.bounds).to(torch.float64)
+    q = torch.as_tensor(rng.standard_normal((3, 2)))
+    v = torch.as_tensor(rng.standard_normal((3, 2)))
+    a_damped = ReducedDynamics(emb.jet, damped, quad).acceleration(q, v)
+    a_free = ReducedDynamics(emb.jet, free, quad).acceleration(q, v)
+    torch.testing.assert_close(a_damped - a_free, -0.7 * v)
+
+
+def test_bad_parameters_are_named():
+    with pytest.raises(ValueError, match="scene.poisson"):
+        ElasticCantilever(poisson=0.5)
+    with pytest.raises(ValueError, match="scene.mesh"):
+        ElasticCantilever(mesh=(10,))
+    with pytest.raises(ValueError, match="scene.deflection_range"):
+        ElasticCantilever(deflection_range=(0.1, -0.1))
