@@ -137,3 +137,20 @@ def test_pareto_mask_and_study_choices():
     runs = [{"model.latent_dim": d, "model.width": w, "field_rel_l2/all/median": e}
             for d, w, e in [(1, 16, 0.3), (1, 32, 0.08), (1, 64, 0.05), (2, 16, 0.09), (2, 32, 0.04)]]
     assert choose(runs, 0.1) == runs[1] and choose(runs, 0.045) == runs[4] and choose(runs, 0.01) is None
+
+
+@pytest.mark.parametrize("scene", ["double_pendulum", "bump"])
+def test_scenes_script_measures_a_tiny_checkpoint(scene, tmp_path):
+    run = tmp_path / "run"
+    data = ["data.n_train=3", "data.n_val=1", "data.n_test=2", "data.n_times=20", "data.train_times=10",
+            "data.fine_resolution=12", "data.coarse_resolution=8", "model.width=16", "model.hyper_width=8",
+            "quadrature.order=4", "evaluation.long_steps=10", "evaluation.long_trajectories=1",
+            "evaluation.max_reduction_points=64", f"paths.data_dir={tmp_path / 'data'}"]
+    _run(["-m", "lnf.train", f"+experiment={scene}", "trainer=smoke", "logger=csv", *data, f"hydra.run.dir={run}"])
+    _run(["experiments/scenes.py", "--scene", scene, "--ckpt", str(run / "checkpoints" / "last.ckpt"),
+          "--out", str(tmp_path / "out"), "--max-modes", "2", "--bb-iterations", "10", "--threads", "1"])
+    result = json.loads((tmp_path / "out" / "results.json").read_text())
+    if scene == "double_pendulum":
+        assert {"ours", "black_box", "drift_ratio_median"} <= set(result) and (tmp_path / "out" / "vpt.png").is_file()
+    else:
+        assert len(result["pod"]) == 2 and len(result["oracle_projection"]) == 2
