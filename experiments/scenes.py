@@ -28,7 +28,8 @@ sys.path.insert(0, str(ROOT))
 
 from lnf.baselines.latent_mlp import LatentMLPDynamics  # noqa: E402
 from lnf.baselines.pod import PODGalerkin  # noqa: E402
-from lnf.evaluation import evaluate_rollouts, long_horizon_energy  # noqa: E402
+from lnf import metrics as M  # noqa: E402
+from lnf.evaluation import evaluate_rollouts, long_horizon_energy, trajectory_controls  # noqa: E402
 from lnf.model import load  # noqa: E402
 from lnf.plotting import save_figure  # noqa: E402
 from lnf.train import fit_latent_dynamics  # noqa: E402
@@ -66,6 +67,15 @@ def evaluate(model: Any, split: Any, integrator: Any = None, states: np.ndarray 
 MIDPOINT = {"name": "implicit_midpoint", "order": 2}
 
 
+def _figure() -> tuple[Any, Any]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt.subplots(figsize=(5, 3.4), layout="constrained")
+
+
 def pick(metrics: dict[str, float], *keys: str) -> dict[str, float]:
     return {k: float(metrics[k]) for k in keys if k in metrics}
 
@@ -89,10 +99,8 @@ def double_pendulum(model: Any, dm: SnapshotDataModule, out: Path, bb_iterations
     result = {"ours": {**pick(ours.metrics, *keys), **drift_ours}, "black_box": {**pick(bb.metrics, *keys), **drift_bb},
               "black_box_fit": fit, "long_steps": steps, "long_horizon_s": steps * dt}
     result["drift_ratio_median"] = drift_bb["energy_drift_long/median"] / max(drift_ours["energy_drift_long/median"], 1e-300)
-    vpt_ours = np.asarray(M_vpt(ours))
-    vpt_bb = np.asarray(M_vpt(bb))
-    import matplotlib.pyplot as plt
-    fig, ax = plt.subplots(figsize=(5, 3.4), layout="constrained")
+    vpt_ours, vpt_bb = _vpt_per_trajectory(ours), _vpt_per_trajectory(bb)
+    fig, ax = _figure()
     ax.hist([vpt_ours, vpt_bb], bins=10, label=[f"ours (median {np.median(vpt_ours):.2f} s)",
                                                  f"black box (median {np.median(vpt_bb):.2f} s)"])
     ax.axvline(horizon, color="k", ls="--", lw=0.8)
@@ -103,8 +111,8 @@ def double_pendulum(model: Any, dm: SnapshotDataModule, out: Path, bb_iterations
     return result
 
 
-def M_vpt(evaluation: Any) -> np.ndarray:
-    from lnf import metrics as M
+def _vpt_per_trajectory(evaluation: Any) -> np.ndarray:
+    """`vpt` of every trajectory (the metrics hold only its median and min)."""
     w = np.full(len(evaluation.points), 1.0 / len(evaluation.points))
     return M.valid_prediction_time(evaluation.pred_fields, evaluation.true_fields, w, evaluation.times)
 
@@ -135,8 +143,7 @@ def bump(model: Any, dm: SnapshotDataModule, out: Path, max_modes: int = 12) -> 
     ours_err = float(ours.metrics["field_rel_l2/all/median"])
     needed = next((r["k"] for r in pod_rows if r["field_rel_l2/all/median"] <= ours_err), None)
     needed_oracle = next((k + 1 for k, e in enumerate(oracle) if e <= ours_err), None)
-    import matplotlib.pyplot as plt
-    fig, ax = plt.subplots(figsize=(5, 3.4), layout="constrained")
+    fig, ax = _figure()
     ks = [r["k"] for r in pod_rows]
     ax.semilogy(ks, [r["field_rel_l2/all/median"] for r in pod_rows], "s-", label="POD-Galerkin rollout")
     ax.semilogy(range(1, max_modes + 1), oracle, "k:", label="best linear k-mode projection (full-grid SVD)")
@@ -206,8 +213,7 @@ def elastic(model: Any, dm: SnapshotDataModule, out: Path, target: float = 0.05)
     q0 = model.reduce(pts[::4], torch.as_tensor(split.fields[:, 0, ::4], dtype=pts.dtype))
     v0 = model.project_velocity(q0, pts[::4], torch.as_tensor(split.velocities[:, 0, ::4], dtype=pts.dtype))
     steps = int(round(times[in_h][-1] / rom_best["dt"]))
-    controls = scene.controls(states0)
-    controls = None if controls is None else torch.as_tensor(controls, dtype=q0.dtype)
+    controls = trajectory_controls(scene, states0, q0)
     roll = lambda n: model.rollout(q0, v0, dt=rom_best["dt"], steps=n, integrator=MIDPOINT,  # noqa: E731
                                    on_divergence="mark", controls=controls)
     roll(2)  # warm-up
@@ -217,8 +223,7 @@ def elastic(model: Any, dm: SnapshotDataModule, out: Path, target: float = 0.05)
     result.update(fom=fom, rom=rom, fom_cfl_fraction=fom_frac, rom_dt=rom_best["dt"], rom_seconds=rom_seconds,
                   fom_seconds=fom_seconds, speedup=fom_seconds / rom_seconds, trajectories=len(states0),
                   horizon_s=float(times[in_h][-1]), fom_nodes=scene.n_nodes, fom_mesh=scene.mesh_shape)
-    import matplotlib.pyplot as plt
-    fig, ax = plt.subplots(figsize=(5, 3.4), layout="constrained")
+    fig, ax = _figure()
     e = base.energies
     for i in range(min(3, len(e["kinetic_pred"]))):
         ax.plot(times, (e["kinetic_pred"][i] + e["potential_pred"][i]) / scene.energy_scale, color=f"C{i}")
@@ -244,8 +249,7 @@ def elastic_actuated(model: Any, dm: SnapshotDataModule, out: Path) -> dict[str,
     # a load outside the training range: frequency 1.2 Hz (training 0.3–0.7 Hz), amplitude 0.5
     unseen_load = np.tile([[0.5, 1.2]], (len(load), 1))
     unseen = evaluate(model, split, states=scene.simulate(scene.pack(u0, v0, unseen_load), times))
-    import matplotlib.pyplot as plt
-    fig, ax = plt.subplots(figsize=(5, 3.4), layout="constrained")
+    fig, ax = _figure()
     for i in range(3):
         ax.plot(times, pred[i] / scene.energy_scale, color=f"C{i}")
         ax.plot(times, true[i] / scene.energy_scale, color=f"C{i}", ls=":")

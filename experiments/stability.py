@@ -107,6 +107,21 @@ def failure_dt(rows: list[dict]) -> float:
     return ok
 
 
+STYLES = {"implicit_midpoint": "-", "rk4": ":"}
+
+
+def error_lines(ax, rows: list[dict], combos: list[tuple[str, str]], sub_study: str, x_of) -> None:
+    """Test field error against x_of(row), one line per (method, integrator) of `sub_study`, failures marked."""
+    for m, integ in combos:
+        sel = sorted((r for r in rows if r.get("study") == sub_study and r["method"] == m
+                      and r["integrator_name"] == integ), key=x_of)
+        if sel:
+            S.plot_marking_failures(ax, np.array([x_of(r) for r in sel]),
+                                    np.array([float(r["field_rel_l2/all/median"]) for r in sel]), _diverged(sel),
+                                    STYLES[integ], marker=S.MARKERS[m], color=S.COLORS[m],
+                                    label=f"{S.LABELS[m]}, {SHORT[integ]}")
+
+
 def plot(study: S.Study, rows: list[dict]) -> Path:
     import matplotlib
 
@@ -115,7 +130,6 @@ def plot(study: S.Study, rows: list[dict]) -> Path:
 
     fig, axes = plt.subplots(2, 2, figsize=(13, 9))
     combos = [(m, i) for m in S.METHODS for i in INTEGRATORS[m]]
-    styles = {"implicit_midpoint": "-", "rk4": ":"}
 
     ax = axes[0, 0]
     width = 0.8 / len(combos)
@@ -140,14 +154,7 @@ def plot(study: S.Study, rows: list[dict]) -> Path:
     ax.set_title("Long horizons (× = diverged)", fontsize=9)
 
     ax = axes[0, 1]
-    for m, integ in combos:
-        sel = sorted((r for r in rows if r.get("study") == "high_energy" and r["method"] == m
-                      and r["integrator_name"] == integ), key=_theta0)
-        if sel:
-            S.plot_marking_failures(ax, np.array([_theta0(r) for r in sel]),
-                                    np.array([float(r["field_rel_l2/all/median"]) for r in sel]), _diverged(sel),
-                                    styles[integ], marker=S.MARKERS[m], color=S.COLORS[m],
-                                    label=f"{S.LABELS[m]}, {SHORT[integ]}")
+    error_lines(ax, rows, combos, "high_energy", _theta0)
     ax.axvspan(0, 0.5, color="0.9", label="training range |θ0| ≤ π/2")
     ax.set_xlabel("θ0 / π (released at rest; 1 = separatrix)")
     ax.set_ylabel("field_rel_l2 over 5 s (× = diverged, drawn at 10)")
@@ -156,15 +163,7 @@ def plot(study: S.Study, rows: list[dict]) -> Path:
     ax.set_title("High energy, beyond the training range", fontsize=9)
 
     ax = axes[1, 0]
-    for m, integ in combos:
-        sel = sorted((r for r in rows if r.get("study") == "dt" and r["method"] == m and r["integrator_name"] == integ),
-                     key=lambda r: float(r["dt"]))
-        if not sel:
-            continue
-        S.plot_marking_failures(ax, np.array([float(r["dt"]) for r in sel]),
-                                np.array([float(r["field_rel_l2/all/median"]) for r in sel]), _diverged(sel),
-                                styles[integ], marker=S.MARKERS[m], color=S.COLORS[m],
-                                label=f"{S.LABELS[m]}, {SHORT[integ]}")
+    error_lines(ax, rows, combos, "dt", lambda r: float(r["dt"]))
     ax.set_xscale("log")
     ax.set_yscale("log")
     ax.set_xlabel("time step dt [s]")

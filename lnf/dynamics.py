@@ -117,7 +117,7 @@ class ReducedDynamics:
         """q̃̈ = M̃⁻¹ (−c̃ − g̃ + τ̃) (B, d)."""
         terms = self.terms(q, v, t)
         rhs = -terms.coriolis - terms.gravity
-        if self.force_fn is not None:
+        if terms.force is not None:
             rhs = rhs + terms.force
         return solve_mass(terms.mass, rhs)
 

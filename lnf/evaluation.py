@@ -49,7 +49,7 @@ def reduction_subset(n_points: int, grid_shape: Optional[tuple[int, ...]], max_p
     return np.arange(0, n_points, int(np.ceil(n_points / max_points)))
 
 
-def _controls(scene, states0: np.ndarray, like: Tensor) -> Optional[Tensor]:
+def trajectory_controls(scene, states0: np.ndarray, like: Tensor) -> Optional[Tensor]:
     """The scene's per-trajectory load parameters (n, c) from initial full-order states (n, S), or None."""
     controls = scene.controls(np.asarray(states0))
     return None if controls is None else torch.as_tensor(controls, dtype=like.dtype, device=like.device)
@@ -101,7 +101,7 @@ def evaluate_rollouts(
     v0 = model.project_velocity(q0, pts_r, vel0)
     integ = get_integrator(integrator)
     start = time.perf_counter()
-    controls = _controls(scene, states[:, 0], q0)
+    controls = trajectory_controls(scene, states[:, 0], q0)
     traj = model.rollout(q0, v0, dt=dt, steps=T - 1, integrator=integ, quadrature=quadrature, on_divergence="mark",
                          controls=controls)
     rollout_seconds = time.perf_counter() - start
@@ -179,7 +179,8 @@ def long_horizon_energy(
     v0 = model.project_velocity(q0, pts, torch.as_tensor(v_true[:, 0], dtype=p.dtype, device=p.device))
     start = time.perf_counter()
     traj = model.rollout(q0, v0, dt=dt, steps=steps, integrator=integrator, quadrature=quadrature,
-                         record_every=record_every, on_divergence="mark", controls=_controls(scene, states0, q0))
+                         record_every=record_every, on_divergence="mark",
+                         controls=trajectory_controls(scene, states0, q0))
     seconds = time.perf_counter() - start
     kin, pot = model.energy(torch.nan_to_num(traj.q), torch.nan_to_num(traj.v), quadrature)
     energy = (kin + pot).double().cpu().numpy()

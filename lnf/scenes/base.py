@@ -1,10 +1,11 @@
 """What a scene is: a body B, a mass density ω0, a potential V, a full-order simulator, an energy scale."""
 from __future__ import annotations
 
-from typing import Any, Optional
+from typing import Any, Callable, Optional, Sequence
 
 import numpy as np
 import torch
+from scipy.integrate import solve_ivp
 from torch import Tensor
 
 from lnf.quadrature import Quadrature
@@ -156,6 +157,33 @@ class Scene:
     def __repr__(self) -> str:
         args = ", ".join(f"{k}={v!r}" for k, v in self.params().items())
         return f"{type(self).__name__}({args})"
+
+
+def check_positive(**values: float) -> None:
+    """Raise a ValueError naming ``scene.<key>`` unless every value is a positive finite number."""
+    for key, value in values.items():
+        if not (np.isfinite(value) and value > 0):
+            raise ValueError(f"scene.{key} must be a positive finite number, got {value!r}")
+
+
+def check_range(**ranges: Sequence[float]) -> None:
+    """Raise a ValueError naming ``scene.<key>`` unless every range is [low, high] with low ≤ high."""
+    for key, rng in ranges.items():
+        if len(rng) != 2 or not rng[0] <= rng[1]:
+            raise ValueError(f"scene.{key} must be [low, high] with low ≤ high, got {list(rng)!r}")
+
+
+def solve_trajectories(rhs: Callable[[float, np.ndarray], np.ndarray], initial_states: np.ndarray,
+                       times: np.ndarray, rtol: float, atol: float, what: str) -> np.ndarray:
+    """Ground truth of an ODE y' = rhs(t, y) by DOP853: states (n, T, S) at `times` from initial states (n, S)."""
+    initial_states = np.asarray(initial_states, dtype=np.float64)
+    out = np.empty((len(initial_states), len(times), initial_states.shape[-1]))
+    for i, y0 in enumerate(initial_states):
+        sol = solve_ivp(rhs, (times[0], times[-1]), y0, method="DOP853", t_eval=times, rtol=rtol, atol=atol)
+        if not sol.success:
+            raise RuntimeError(f"{what} ground truth failed for initial state {y0}: {sol.message}")
+        out[i] = sol.y.T
+    return out
 
 
 def as_tensor(x: np.ndarray, like: Tensor) -> Tensor:

@@ -19,7 +19,7 @@ import torch
 from torch import Tensor
 
 from lnf.quadrature import Quadrature
-from lnf.scenes.base import DiscretePotential
+from lnf.scenes.base import DiscretePotential, check_positive
 from lnf.scenes.pendulum import LiftedPendulum
 
 
@@ -60,9 +60,7 @@ class BumpPendulum(LiftedPendulum):
                  radius: float = 0.5, width: float = 0.2, rtol: float = 1e-11, atol: float = 1e-11) -> None:
         super().__init__(mass=mass, length=length, gravity=gravity, theta0_range=theta0_range,
                          omega0_range=omega0_range, degrees=(0, 0), rtol=rtol, atol=atol)
-        for key, value in [("radius", radius), ("width", width)]:
-            if not (np.isfinite(value) and value > 0):
-                raise ValueError(f"scene.{key} must be a positive finite number, got {value!r}")
+        check_positive(radius=radius, width=width)
         if radius + 2 * width > 1.0:
             raise ValueError(f"scene.radius + 2·scene.width must be ≤ 1 so the bump stays inside [-1, 1]², "
                              f"got {radius} + 2·{width}")

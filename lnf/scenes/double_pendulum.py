@@ -15,24 +15,11 @@ from typing import Any, Optional, Sequence
 
 import numpy as np
 import torch
-from scipy.integrate import solve_ivp
 from torch import Tensor
 
 from lnf.quadrature import Quadrature
-from lnf.scenes.base import DiscretePotential, ModalKinetic, Scene
+from lnf.scenes.base import DiscretePotential, ModalKinetic, Scene, check_positive, check_range, solve_trajectories
 from lnf.scenes.pendulum import legendre_mode
-
-
-def _check_positive(**values: float) -> None:
-    for key, value in values.items():
-        if not (np.isfinite(value) and value > 0):
-            raise ValueError(f"scene.{key} must be a positive finite number, got {value!r}")
-
-
-def _check_range(**ranges: Sequence[float]) -> None:
-    for key, rng in ranges.items():
-        if len(rng) != 2 or not rng[0] <= rng[1]:
-            raise ValueError(f"scene.{key} must be [low, high] with low ≤ high, got {list(rng)!r}")
 
 
 class DoublePendulumKinetic(ModalKinetic):
@@ -96,9 +83,9 @@ class LiftedDoublePendulum(Scene):
         if len(masses) != 2 or len(lengths) != 2:
             raise ValueError(f"scene.masses and scene.lengths must have two entries, got {list(masses)!r}, "
                              f"{list(lengths)!r}")
-        _check_positive(gravity=gravity, **{f"masses[{i}]": m for i, m in enumerate(masses)},
+        check_positive(gravity=gravity, **{f"masses[{i}]": m for i, m in enumerate(masses)},
                         **{f"lengths[{i}]": ell for i, ell in enumerate(lengths)})
-        _check_range(theta0_range=theta0_range, omega0_range=omega0_range)
+        check_range(theta0_range=theta0_range, omega0_range=omega0_range)
         modes = [[int(n) for n in m] for m in modes]
         if len(modes) != 2 or len(modes[0]) != len(modes[1]) or modes[0] == modes[1]:
             raise ValueError(f"scene.modes must be two distinct Legendre degree tuples of equal length, got {modes!r}")
@@ -161,14 +148,7 @@ class LiftedDoublePendulum(Scene):
         def rhs(_t: float, y: np.ndarray) -> np.ndarray:
             return np.concatenate([y[2:], self.acceleration(y[:2], y[2:])])
 
-        out = np.empty((len(initial_states), len(times), 4))
-        for i, y0 in enumerate(np.asarray(initial_states, dtype=np.float64)):
-            sol = solve_ivp(rhs, (times[0], times[-1]), y0, method="DOP853", t_eval=times,
-                            rtol=self.rtol, atol=self.atol)
-            if not sol.success:
-                raise RuntimeError(f"double-pendulum ground truth failed for initial state {y0}: {sol.message}")
-            out[i] = sol.y.T
-        return out
+        return solve_trajectories(rhs, initial_states, times, self.rtol, self.atol, "double-pendulum")
 
     def fields(self, states: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         u = self.mode_values(points)  # (2, N)

@@ -27,7 +27,7 @@ import torch
 from torch import Tensor
 
 from lnf.quadrature import Quadrature
-from lnf.scenes.base import DiscretePotential, GeneralizedForce, Scene
+from lnf.scenes.base import DiscretePotential, GeneralizedForce, Scene, check_positive, check_range
 from lnf.scenes.fem import StructuredQ1Mesh, lame
 
 log = logging.getLogger("lnf.scenes.elastic")
@@ -104,10 +104,7 @@ class ElasticCantilever(Scene):
                  deflection_range: Sequence[float] = (-0.15, 0.15), tip_speed_range: Sequence[float] = (-0.5, 0.5),
                  damping: float = 0.0, load_amplitude_range: Sequence[float] = (0.0, 0.0),
                  load_frequency_range: Sequence[float] = (0.5, 1.0)) -> None:
-        for key, value in [("length", length), ("height", height), ("density", density), ("young", young),
-                           ("cfl_fraction", cfl_fraction)]:
-            if not (np.isfinite(value) and value > 0):
-                raise ValueError(f"scene.{key} must be a positive finite number, got {value!r}")
+        check_positive(length=length, height=height, density=density, young=young, cfl_fraction=cfl_fraction)
         if not 0 <= poisson < 0.5:
             raise ValueError(f"scene.poisson must be in [0, 0.5), got {poisson!r}")
         for key, value in [("gravity", gravity), ("damping", damping)]:
@@ -115,11 +112,8 @@ class ElasticCantilever(Scene):
                 raise ValueError(f"scene.{key} must be a finite number ≥ 0, got {value!r}")
         if len(mesh) != 2 or any(int(n) != n or n < 1 for n in mesh):
             raise ValueError(f"scene.mesh must be two integers (nx, ny) ≥ 1, got {list(mesh)!r}")
-        for key, rng in [("deflection_range", deflection_range), ("tip_speed_range", tip_speed_range),
-                         ("load_amplitude_range", load_amplitude_range),
-                         ("load_frequency_range", load_frequency_range)]:
-            if len(rng) != 2 or not rng[0] <= rng[1]:
-                raise ValueError(f"scene.{key} must be [low, high] with low ≤ high, got {list(rng)!r}")
+        check_range(deflection_range=deflection_range, tip_speed_range=tip_speed_range,
+                    load_amplitude_range=load_amplitude_range, load_frequency_range=load_frequency_range)
         self.length, self.height, self.rho = float(length), float(height), float(density)
         self.young, self.poisson, self.gravity = float(young), float(poisson), float(gravity)
         self.mesh_shape = [int(n) for n in mesh]
@@ -129,6 +123,7 @@ class ElasticCantilever(Scene):
         self.damping = float(damping)
         self.load_amplitude_range = [float(v) for v in load_amplitude_range]
         self.load_frequency_range = [float(v) for v in load_frequency_range]
+        self.loaded = any(v != 0 for v in self.load_amplitude_range)  # actuation present
         self.bounds = [[0.0, self.length], [0.0, self.height]]
         self.lam, self.mu = lame(self.young, self.poisson)
         self.mesh = StructuredQ1Mesh(self.length, self.height, *self.mesh_shape)
@@ -160,7 +155,7 @@ class ElasticCantilever(Scene):
 
     @property
     def forced(self) -> bool:
-        return self.damping > 0 or any(v != 0 for v in self.load_amplitude_range)
+        return self.damping > 0 or self.loaded
 
     def generalized_force(self, quadrature: Quadrature) -> Optional[CantileverLoad]:
         if not self.forced:
@@ -214,7 +209,7 @@ class ElasticCantilever(Scene):
         """Nodal accelerations (n, nn, 2) of internal, gravity and actuation forces (no damping); 0 at the clamp."""
         force = self.mesh.internal_force(u, self.lam, self.mu)
         force[..., 1] -= self.nodal_mass * self.gravity
-        if any(v != 0 for v in self.load_amplitude_range):
+        if self.loaded:
             force = force + self.external_force(t, load)
         acc = force / self.nodal_mass[None, :, None]
         acc[:, self.mesh.clamped] = 0.0
@@ -251,13 +246,11 @@ class ElasticCantilever(Scene):
     def fields(self, states: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         u, v, _ = self.unpack(np.asarray(states))
         interp = self.mesh.interpolation(np.asarray(points, dtype=np.float64))  # (N, nn)
-        lead = u.shape[:-2]
-        u2 = u.reshape(-1, self.n_nodes, 2).transpose(1, 0, 2).reshape(self.n_nodes, -1)
-        v2 = v.reshape(-1, self.n_nodes, 2).transpose(1, 0, 2).reshape(self.n_nodes, -1)
-        N = len(points)
-        q = (interp @ u2).reshape(N, -1, 2).transpose(1, 0, 2).reshape(*lead, N, 2)
-        qdot = (interp @ v2).reshape(N, -1, 2).transpose(1, 0, 2).reshape(*lead, N, 2)
-        return q, qdot
+        lead, N = u.shape[:-2], len(points)
+        uv = np.concatenate([u, v], -1).reshape(-1, self.n_nodes, 4)  # one product for both fields
+        out = (interp @ uv.transpose(1, 0, 2).reshape(self.n_nodes, -1)).reshape(N, -1, 4).transpose(1, 0, 2)
+        out = out.reshape(*lead, N, 4)
+        return out[..., :2], out[..., 2:]
 
     def true_energy_parts(self, states: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         u, v, _ = self.unpack(np.asarray(states))

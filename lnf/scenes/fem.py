@@ -3,7 +3,8 @@
 Bilinear (Q1) elements on a structured nx × ny grid of the box [0, L] × [0, H], 2×2 Gauss quadrature,
 row-sum lumped mass. Displacements u (B, n_nodes, 2) are batched over trajectories; nodes are numbered
 i·(ny+1) + j for the node at (i·hx, j·hy). The stored energy is W(F) = μ E:E + ½ λ (tr E)² with
-E = ½(FᵀF − I), F = I + ∇_X u; the first Piola–Kirchhoff stress is P = F (λ tr E I + 2 μ E).
+E = ½(FᵀF − I), F = I + ∇_X u; the first Piola–Kirchhoff stress P = F (λ tr E I + 2 μ E) is written out per
+component in :meth:`StructuredQ1Mesh.internal_force`.
 """
 from __future__ import annotations
 
@@ -26,14 +27,6 @@ def svk_energy_density(F: np.ndarray, lam: float, mu: float) -> np.ndarray:
     return mu * np.sum(E * E, axis=(-1, -2)) + 0.5 * lam * trace**2
 
 
-def svk_stress(F: np.ndarray, lam: float, mu: float) -> np.ndarray:
-    """First Piola–Kirchhoff stress P = F S(E) (…, 2, 2)."""
-    E = 0.5 * (np.swapaxes(F, -1, -2) @ F - np.eye(2))
-    trace = E[..., 0, 0] + E[..., 1, 1]
-    S = 2 * mu * E + lam * trace[..., None, None] * np.eye(2)
-    return F @ S
-
-
 class StructuredQ1Mesh:
     """Nodes, elements, shape-function gradients, lumped areas and interpolation of a Q1 box mesh."""
 
@@ -53,6 +46,7 @@ class StructuredQ1Mesh:
             dN[g, :, 0] = 0.25 * CORNERS[:, 0] * (1 + CORNERS[:, 1] * eta) * 2 / self.hx
             dN[g, :, 1] = 0.25 * CORNERS[:, 1] * (1 + CORNERS[:, 0] * xi) * 2 / self.hy
         self.dN = dN
+        self.D = dN.transpose(1, 0, 2).reshape(4, 8)  # (4a, 4g·2j): the same gradients as one matrix
         self.gauss_weight = self.hx * self.hy / 4.0
         ne = len(self.elements)
         self.assembly = sp.csr_matrix((np.ones(4 * ne), (self.elements.ravel(), np.arange(4 * ne))),
@@ -67,8 +61,7 @@ class StructuredQ1Mesh:
     def _displacement_gradient(self, u: np.ndarray) -> np.ndarray:
         """∇_X u at every Gauss point as (B, ne, 4g, 2k, 2j) via two BLAS products."""
         ue = u[:, self.elements]  # (B, ne, 4a, 2k)
-        D = self.dN.transpose(1, 0, 2).reshape(4, 8)  # (4a, 4g·2j)
-        G = np.stack([ue[..., 0] @ D, ue[..., 1] @ D], -2)  # (B, ne, 2k, 8)
+        G = np.stack([ue[..., 0] @ self.D, ue[..., 1] @ self.D], -2)  # (B, ne, 2k, 8)
         return G.reshape(*G.shape[:2], 2, 4, 2).transpose(0, 1, 3, 2, 4)
 
     def deformation_gradient(self, u: np.ndarray) -> np.ndarray:
@@ -86,9 +79,8 @@ class StructuredQ1Mesh:
         s00, s11, s01 = tr + 2 * mu * e00, tr + 2 * mu * e11, 2 * mu * e01
         P = np.stack([a * s00 + b * s01, a * s01 + b * s11, c * s00 + d * s01, c * s01 + d * s11], -1)
         P = P.reshape(*P.shape[:3], 2, 2)  # (B, ne, 4g, 2k, 2j)
-        D = self.dN.transpose(1, 0, 2).reshape(4, 8)  # (4a, 4g·2j)
         Pk = P.transpose(0, 1, 3, 2, 4).reshape(*P.shape[:2], 2, 8)  # (B, ne, 2k, 4g·2j)
-        fe = -self.gauss_weight * (Pk @ D.T)  # (B, ne, 2k, 4a)
+        fe = -self.gauss_weight * (Pk @ self.D.T)  # (B, ne, 2k, 4a)
         B = u.shape[0]
         flat = fe.transpose(1, 3, 0, 2).reshape(-1, B * 2)  # (ne·4a, B·2k)
         return (self.assembly @ flat).reshape(self.n_nodes, B, 2).transpose(1, 0, 2)

@@ -6,11 +6,10 @@ from typing import Any, Optional, Sequence
 import numpy as np
 import torch
 from numpy.polynomial import legendre
-from scipy.integrate import solve_ivp
 from torch import Tensor
 
 from lnf.quadrature import Quadrature
-from lnf.scenes.base import DiscretePotential, Scene
+from lnf.scenes.base import DiscretePotential, Scene, check_positive, check_range, solve_trajectories
 
 
 def legendre_mode(points: np.ndarray, degrees: Sequence[int]) -> np.ndarray:
@@ -70,12 +69,8 @@ class LiftedPendulum(Scene):
         rtol: float = 1e-11,
         atol: float = 1e-11,
     ) -> None:
-        for key, value in [("mass", mass), ("length", length), ("gravity", gravity)]:
-            if not (np.isfinite(value) and value > 0):
-                raise ValueError(f"scene.{key} must be a positive finite number, got {value!r}")
-        for key, rng in [("theta0_range", theta0_range), ("omega0_range", omega0_range)]:
-            if len(rng) != 2 or not rng[0] <= rng[1]:
-                raise ValueError(f"scene.{key} must be [low, high] with low ≤ high, got {list(rng)!r}")
+        check_positive(mass=mass, length=length, gravity=gravity)
+        check_range(theta0_range=theta0_range, omega0_range=omega0_range)
         self.mass, self.length, self.gravity = float(mass), float(length), float(gravity)
         self.theta0_range = [float(v) for v in theta0_range]
         self.omega0_range = [float(v) for v in omega0_range]
@@ -114,14 +109,7 @@ class LiftedPendulum(Scene):
         def rhs(_t: float, y: np.ndarray) -> np.ndarray:
             return np.array([y[1], -k * np.sin(y[0])])
 
-        out = np.empty((len(initial_states), len(times), 2))
-        for i, y0 in enumerate(np.asarray(initial_states, dtype=np.float64)):
-            sol = solve_ivp(rhs, (times[0], times[-1]), y0, method="DOP853", t_eval=times,
-                            rtol=self.rtol, atol=self.atol)
-            if not sol.success:
-                raise RuntimeError(f"pendulum ground truth failed for initial state {y0}: {sol.message}")
-            out[i] = sol.y.T
-        return out
+        return solve_trajectories(rhs, initial_states, times, self.rtol, self.atol, self.name)
 
     def fields(self, states: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         u = self.mode(points)  # (N,)

@@ -32,18 +32,15 @@ def write_json_atomic(path: str | Path, payload: dict[str, Any]) -> Path:
     return path
 
 
-_SUB = "₀₁₂₃₄₅₆₇₈₉"
-
-
 def save_evaluation_figures(result: RolloutEvaluation, scene: Any, grid_shape: tuple[int, ...],
                             train_horizon: float, out_dir: Path, prefix: str, n_trajectories: int = 2) -> list[Path]:
     """Figure 3 (latent, energies, fields and errors before/after the horizon) for the first trajectories."""
-    from lnf.plotting import default_snapshot_indices, figure3, save_figure
+    from lnf.plotting import _subscript, default_snapshot_indices, figure3, save_figure
 
     paths = []
     idx = default_snapshot_indices(result.times, train_horizon)
     comp = scene.field_dim - 1  # vector fields: the last component (the vertical displacement of the elastic body)
-    label = "field q" if scene.field_dim == 1 else f"field component q{_SUB[comp + 1]}"
+    label = "field q" if scene.field_dim == 1 else f"field component q{_subscript(comp + 1)}"
     for i in range(min(n_trajectories, result.q_pred.shape[0])):
         energies = {k: v[i] for k, v in result.energies.items()}
         fig = figure3(result.times, result.q_pred[i], result.q_ref[i], energies, grid_shape, scene.bounds,
