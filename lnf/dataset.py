@@ -20,7 +20,7 @@ Layout (``FORMAT_VERSION`` 1)::
     /{split}/masks               (n, Nc)         bool     exactly round(observed_fraction·Nc) True per row
 
 Files are written atomically (temporary file, then ``os.replace``), so a file at the target path is
-always complete. Every user-facing failure raises :class:`DatasetError` naming the file and the key.
+always complete; a temporary left by a killed writer is removed by the next generation of that file. Every user-facing failure raises :class:`DatasetError` naming the file and the key.
 """
 from __future__ import annotations
 
@@ -29,7 +29,9 @@ import json
 import logging
 import math
 import os
+import socket
 from dataclasses import asdict, dataclass, fields as dataclass_fields
+from glob import escape as glob_escape
 from pathlib import Path
 from typing import Any, Iterator, Mapping, Optional
 
@@ -334,12 +336,33 @@ def _draw(scene: Any, cfg: DatasetConfig, n_coarse: int) -> tuple[np.ndarray, np
     return initial, masks
 
 
+def _remove_stale_temporaries(path: Path) -> None:
+    """Delete temporaries of `path` left by killed writers on this host (SIGKILL runs no cleanup).
+
+    A temporary is named ``{name}.tmp-{host}-{pid}``; it is stale when that process no longer exists.
+    Temporaries of other hosts (a shared file system) are left alone.
+    """
+    prefix = f"{path.name}.tmp-{socket.gethostname()}-"
+    for tmp in path.parent.glob(glob_escape(prefix) + "*"):
+        pid = tmp.name[len(prefix):]
+        if not pid.isdigit():
+            continue
+        try:
+            os.kill(int(pid), 0)
+        except ProcessLookupError:
+            log.warning("removing %s, left by an interrupted generation (process %s is gone)", tmp, pid)
+            tmp.unlink(missing_ok=True)
+        except PermissionError:  # alive, another user's
+            pass
+
+
 def generate_dataset(scene: Any, cfg: DatasetConfig, path: str | os.PathLike) -> Path:
     """Simulate and write the dataset of `scene` under `cfg` to `path` atomically; returns the path."""
     path = Path(path)
     attrs = generation_attributes(scene, cfg)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + f".tmp-{os.getpid()}")
+    _remove_stale_temporaries(path)
+    tmp = path.with_name(f"{path.name}.tmp-{socket.gethostname()}-{os.getpid()}")
     times = cfg.dt * np.arange(cfg.n_times, dtype=np.float64)
     fine, coarse = _grid(scene, cfg.fine_resolution), _grid(scene, cfg.coarse_resolution)
     initial, masks = _draw(scene, cfg, len(coarse))

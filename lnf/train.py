@@ -52,6 +52,26 @@ def build_loggers(cfg: DictConfig, output_dir: Path) -> list[Any]:
     return loggers
 
 
+def resolve_checkpoint(ckpt_path: Optional[str], output_dir: Path) -> Optional[str]:
+    """The checkpoint to resume from: `ckpt_path` = null (when a killed run's output dir is reused, resume
+    from the newest of ``checkpoints/last.ckpt`` and Lightning's SLURM ``hpc_ckpt_*.ckpt``; else start
+    afresh), "last" (``checkpoints/last.ckpt``, which must exist) or a path."""
+    last = output_dir / "checkpoints" / "last.ckpt"
+    if ckpt_path is None:
+        # Lightning's SLURM requeue (SIGUSR1) saves hpc_ckpt_<n>.ckpt in the output dir: take the newest
+        found = [p for p in [last, *output_dir.glob("hpc_ckpt_*.ckpt")] if p.is_file()]
+        if found:
+            newest = max(found, key=lambda p: p.stat().st_mtime)
+            log.info("resuming from %s (the output dir holds a checkpoint; use a new dir to start afresh)", newest)
+            return str(newest)
+        return None
+    path = last if str(ckpt_path) == "last" else Path(str(ckpt_path))
+    if not path.is_file():
+        raise FileNotFoundError(f"ckpt_path={ckpt_path}: no checkpoint at {path}; expected a Lightning checkpoint "
+                                f"file, or ckpt_path=last with hydra.run.dir set to the run to resume")
+    return str(path)
+
+
 def train(cfg: DictConfig) -> dict[str, float]:
     """Generate data if needed, train, test; returns the test metrics (also written to metrics.json)."""
     check_config(cfg)
@@ -76,12 +96,19 @@ def train(cfg: DictConfig) -> dict[str, float]:
     callbacks = [hydra.utils.instantiate(c) for c in (cfg.get("callbacks") or {}).values() if c is not None]
     trainer: pl.Trainer = hydra.utils.instantiate(cfg.trainer, callbacks=[*callbacks, evaluation],
                                                   logger=build_loggers(cfg, output_dir) or False)
+    if trainer.is_global_zero:  # provenance first, so that a run killed later still says what it was
+        write_json_atomic(output_dir / "run.json", run_metadata(cfg))
     for logger in trainer.loggers:
         logger.log_hyperparams(resolved_config(cfg))
+    ckpt_path = resolve_checkpoint(cfg.get("ckpt_path"), output_dir)
     model = module.model
     fit_info: dict[str, float] = {}
+    fit_metrics: dict[str, float] = {}
     if model.trainable:
-        trainer.fit(module, datamodule=datamodule, ckpt_path=cfg.get("ckpt_path"))
+        trainer.fit(module, datamodule=datamodule, ckpt_path=ckpt_path)
+        # the last epoch's training and validation values (losses, validation rollouts)
+        fit_metrics = {k: float(v) for k, v in trainer.callback_metrics.items()
+                       if k.startswith(("train/", "val/")) and not k.endswith("_step")}
     else:
         log.info("%s is fitted in closed form: no gradient training", type(model).__name__)
         points, values, _ = datamodule.observations("train")
@@ -100,13 +127,9 @@ def train(cfg: DictConfig) -> dict[str, float]:
     metrics.update(fit_info)
     if hasattr(model, "step_size"):
         metrics["step_size"] = float(model.step_size.detach())
-    val = trainer.callback_metrics
-    for key in ("val/loss", "val/field_rel_l2/all/median"):
-        if key in val:
-            metrics[key] = float(val[key])
+    metrics.update(fit_metrics)
     if trainer.is_global_zero:
         write_json_atomic(output_dir / "metrics.json", metrics)
-        write_json_atomic(output_dir / "run.json", run_metadata(cfg))
         print_summary(metrics, title=f"test metrics ({output_dir})")
     return metrics
 
@@ -114,7 +137,17 @@ def train(cfg: DictConfig) -> dict[str, float]:
 @hydra.main(version_base="1.3", config_path="../conf", config_name="train")
 def main(cfg: DictConfig) -> Optional[float]:
     metrics = train(cfg)
-    return metrics.get(cfg.get("optimized_metric") or "field_rel_l2/all/median")
+    return optimized_value(metrics, cfg.get("optimized_metric"))
+
+
+def optimized_value(metrics: dict[str, float], key: Optional[str]) -> Optional[float]:
+    """metrics[key] for a sweeper; a key the run did not produce is an error, not a silent None."""
+    if key is None:
+        return None
+    if key not in metrics:
+        raise KeyError(f"optimized_metric={key} is not among this run's metrics ({', '.join(sorted(metrics))}); "
+                       f"validation rollout metrics need evaluation.every_n_epochs to divide trainer.max_epochs")
+    return metrics[key]
 
 
 if __name__ == "__main__":

@@ -5,7 +5,8 @@ import platform
 import subprocess
 import sys
 from importlib import metadata
-from typing import Any
+from pathlib import Path
+from typing import Any, Optional
 
 from omegaconf import DictConfig, OmegaConf
 
@@ -42,20 +43,29 @@ def resolved_config(cfg: DictConfig) -> dict[str, Any]:
 
 
 def run_metadata(cfg: DictConfig) -> dict[str, Any]:
-    """Package versions, git commit and the resolved config of a run."""
+    """Package versions, git commit (and whether the tree had uncommitted changes), command line and the
+    resolved config of a run."""
     versions = {}
     for pkg in ["lnf", "torch", "lightning", "hydra-core", "omegaconf", "wandb", "h5py", "numpy", "scipy", "torchdiffeq"]:
         try:
             versions[pkg] = metadata.version(pkg)
         except metadata.PackageNotFoundError:
             versions[pkg] = None
+    here = Path(__file__).resolve().parent
+    commit = _git(["rev-parse", "HEAD"], here)
+    status = _git(["status", "--porcelain", "--untracked-files=no"], here) if commit else None
+    return {"versions": versions, "git_commit": commit or None,
+            "git_dirty": None if status is None else bool(status), "argv": sys.argv,
+            "python": sys.version, "platform": platform.platform(), "config": resolved_config(cfg)}
+
+
+def _git(args: list[str], cwd: Path) -> Optional[str]:
+    """stdout of `git args` in `cwd`, or None when git or the repository is not there."""
     try:
-        commit = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, timeout=5,
-                                cwd=str(__import__("pathlib").Path(__file__).resolve().parent)).stdout.strip() or None
+        proc = subprocess.run(["git", *args], capture_output=True, text=True, timeout=5, cwd=str(cwd))
     except (OSError, subprocess.SubprocessError):
-        commit = None
-    return {"versions": versions, "git_commit": commit, "python": sys.version, "platform": platform.platform(),
-            "config": resolved_config(cfg)}
+        return None
+    return proc.stdout.strip() if proc.returncode == 0 else None
 
 
 def print_summary(metrics: dict[str, float], title: str = "test metrics") -> None:

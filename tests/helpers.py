@@ -1,6 +1,9 @@
 """Composing configs in tests (Hydra's compose API) with tiny data and a temporary output dir."""
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 from hydra import compose, initialize_config_dir
@@ -27,3 +30,22 @@ def compose_config(name: str, overrides: list[str], tmp_path: Path) -> DictConfi
         cfg.hydra.runtime.output_dir = str(tmp_path / "out")
     HydraConfig.instance().set_config(cfg)
     return cfg
+
+
+ROOT = Path(__file__).resolve().parents[1]
+TIMING = ("seconds",)  # metrics that measure time, not results
+
+
+def run_cli(args: list[str], root: Path, check: bool = True, timeout: int = 600) -> subprocess.CompletedProcess:
+    """`python -m lnf.train *args` from the repository root, outputs and data under `root` (LNF_ROOT)."""
+    env = {**os.environ, "LNF_ROOT": str(root), "WANDB_MODE": "offline", "WANDB_SILENT": "true"}
+    proc = subprocess.run([sys.executable, "-m", "lnf.train", *args], cwd=ROOT, env=env, capture_output=True,
+                          text=True, timeout=timeout)
+    if check:
+        assert proc.returncode == 0, f"exit {proc.returncode}\n{proc.stdout[-2000:]}\n{proc.stderr[-4000:]}"
+    return proc
+
+
+def result_metrics(metrics: dict) -> dict:
+    """The metrics that a deterministic rerun must reproduce (no timings)."""
+    return {k: v for k, v in metrics.items() if not any(t in k for t in TIMING)}

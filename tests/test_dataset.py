@@ -272,3 +272,27 @@ def test_generation_attributes_are_json(scene):
     assert attrs["format_version"] == FORMAT_VERSION
     assert attrs["scene"]["_target_"] == "lnf.scenes.pendulum.LiftedPendulum"
     assert attrs["generation"]["coarse_resolution"] == 8
+
+
+def test_killed_generation_leaves_no_partial_file(tmp_path):
+    """SIGKILL in the middle of writing: no file at the target; the next run removes the temporary."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    target = tmp_path / "big.h5"
+    code = ("import sys; from lnf.dataset import DatasetConfig, generate_dataset; from lnf.scenes import LiftedPendulum; "
+            "generate_dataset(LiftedPendulum(), DatasetConfig(n_train=400, n_times=100, fine_resolution=64), sys.argv[1])")
+    proc = subprocess.Popen([sys.executable, "-c", code, str(target)])
+    deadline = time.monotonic() + 120
+    while not any(".tmp-" in p.name for p in tmp_path.iterdir()):
+        assert proc.poll() is None and time.monotonic() < deadline, "the writer ended before it could be killed"
+        time.sleep(0.05)
+    time.sleep(0.5)  # well inside the writing of the file
+    os.kill(proc.pid, signal.SIGKILL)
+    assert proc.wait() == -signal.SIGKILL
+    assert not target.exists() and not no_temp_files(tmp_path)
+    path = ensure_dataset(LiftedPendulum(), CFG, target)
+    assert no_temp_files(tmp_path) and load_split(path, "test", cfg=CFG).states.shape[0] == 2

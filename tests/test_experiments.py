@@ -154,3 +154,20 @@ def test_scenes_script_measures_a_tiny_checkpoint(scene, tmp_path):
         assert {"ours", "black_box", "drift_ratio_median"} <= set(result) and (tmp_path / "out" / "vpt.png").is_file()
     else:
         assert len(result["pod"]) == 2 and len(result["oracle_projection"]) == 2
+
+
+def test_streaming_benchmark_smoke(tmp_path):
+    """experiments/streaming.py on a tiny dataset: it needs a writable memory cgroup, and says so without one."""
+    out = tmp_path / "results.json"
+    proc = subprocess.run([sys.executable, "experiments/streaming.py", "--gib", "0.02", "--limit-gib", "1.5",
+                           "--steps", "2", "--warmup", "1", "--loader-batches", "3", "--data-dir", str(tmp_path / "data"),
+                           "--out", str(out)], cwd=ROOT, capture_output=True, text=True, timeout=600)
+    if "needs a writable memory cgroup" in proc.stderr:
+        assert proc.returncode != 0 and not out.exists()
+        return
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    result = json.loads(out.read_text())
+    runs = {(r["mode"], r["workers"], r["limit_bytes"] is not None): r for r in result["runs"]}
+    lazy, baseline = runs[("lazy", 0, True)], runs[("in_memory", 0, False)]
+    assert lazy["returncode"] == 0 and lazy["train_snapshots_per_s"] > 0 and lazy["peak_rss_bytes"] > 0
+    assert baseline["train_rate_vs_in_memory"] == 1.0 and lazy["limit_bytes"] == int(1.5 * 2 ** 30)

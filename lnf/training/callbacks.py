@@ -84,6 +84,12 @@ class RolloutEvaluationCallback(pl.Callback):
         self.test_metrics: dict[str, float] = {}
         self._val_count = 0
 
+    def state_dict(self) -> dict[str, Any]:  # saved in checkpoints: a resumed run rolls out at the same epochs
+        return {"val_count": self._val_count}
+
+    def load_state_dict(self, state_dict: dict[str, Any]) -> None:
+        self._val_count = int(state_dict.get("val_count", 0))
+
     @staticmethod
     def _train_horizon(split: Any) -> float:
         return float(split.times[split.train_times]) if split.train_times < len(split.times) else float(split.times[-1])
@@ -128,9 +134,9 @@ class RolloutEvaluationCallback(pl.Callback):
                                                    max_reduction_points=self.max_reduction_points))
         metrics["evaluation_seconds"] = time.perf_counter() - start
         self.test_metrics = metrics
-        if trainer.is_global_zero:
-            for key, value in metrics.items():
-                pl_module.log(f"test/{key}", float(value), rank_zero_only=True)
+        for key, value in metrics.items():  # equal on every rank (each evaluates the whole split)
+            pl_module.log(f"test/{key}", float(value), sync_dist=True)
+        if trainer.is_global_zero:  # figures and images once
             paths = save_evaluation_figures(result, model.scene, grid_shape, horizon, self.output_dir / "figures",
                                             "test", self.figures)
             self._log_images(trainer, paths)

@@ -4,40 +4,127 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+import multiprocessing as mp
+import os
 from pathlib import Path
 from typing import Any, Optional
 
+import h5py
 import lightning.pytorch as pl
 import numpy as np
 import torch
 from torch.utils.data import DataLoader, Dataset
 
-from lnf.dataset import DatasetConfig, TrajectorySplit, ensure_dataset, generation_attributes, load_split
+from lnf.dataset import DatasetConfig, DatasetError, TrajectorySplit, ensure_dataset, generation_attributes, load_split
 from lnf.model import build
 from lnf.scenes.base import Scene
+from lnf.training.sampling import GlobalBatchSampler
 
 log = logging.getLogger("lnf.data")
 
 
-class SnapshotDataset(Dataset):
-    """Snapshots (trajectory i, time k) of each trajectory's own masked coarse observations.
+def _read_leading(dataset: h5py.Dataset, n_times: int) -> np.ndarray:
+    """dataset[:, :n_times] read straight into one array (slicing would hold a second copy at its peak)."""
+    out = np.empty((dataset.shape[0], n_times, *dataset.shape[2:]), dtype=dataset.dtype)
+    dataset.read_direct(out, np.s_[:, :n_times])
+    return out
 
-    Built from points (n, Nobs, dim_B), values and velocities (n, T', Nobs, A) (see
-    :meth:`SnapshotDataModule.observations`). Item: points (Nobs, dim_B), values (Nobs, A), velocities (Nobs, A).
+
+class SnapshotDataset(Dataset):
+    """Snapshots (trajectory i, time k < n_times) of each trajectory's own masked coarse observations.
+
+    Reads the HDF5 file lazily: each process (DataLoader worker, DDP rank) opens its own read-only handle
+    on first use and reads one snapshot per item, so memory does not grow with the dataset. With
+    ``in_memory`` the split's coarse values and velocities over the first `n_times` samples are read once.
+
+    Item: points (Nobs, dim_B), values (Nobs, A), velocities (Nobs, A), float32. With ``noise`` > 0, item
+    (i, k) gets Gaussian noise of std noise·RMS (RMS of the split's observed values, resp. velocities) drawn
+    from a generator seeded by (seed, i, k): the same noise in both modes, in any worker, after a restart.
     """
 
-    def __init__(self, points: np.ndarray, values: np.ndarray, velocities: np.ndarray) -> None:
-        self.points = torch.as_tensor(points, dtype=torch.float32)
-        self.values = torch.as_tensor(values, dtype=torch.float32)
-        self.velocities = torch.as_tensor(velocities, dtype=torch.float32)
-        self.n_times = self.values.shape[1]
+    KEYS = ("coarse_fields", "coarse_velocities")
+
+    def __init__(self, path: str | Path, split: str, n_times: int, noise: float = 0.0, seed: int = 0,
+                 in_memory: bool = False) -> None:
+        self.path, self.split, self.n_times = Path(path), split, int(n_times)
+        self.noise, self.seed = float(noise), int(seed)
+        with h5py.File(self.path, "r") as f:
+            masks = f[f"{split}/masks"][...]
+            self.index = np.stack([np.flatnonzero(m) for m in masks])  # (n, Nobs), sorted per trajectory
+            self.points = torch.as_tensor(f["grids/coarse"][...][self.index], dtype=torch.float32)
+            self._arrays = {key: _read_leading(f[f"{split}/{key}"], self.n_times) for key in self.KEYS} \
+                if in_memory else None
+        self._file: Optional[h5py.File] = None
+        self._pid: Optional[int] = None
+        self.noise_std = (self.noise * self._observed_rms(self.KEYS[0]), self.noise * self._observed_rms(self.KEYS[1])) \
+            if self.noise > 0 else None
 
     def __len__(self) -> int:
-        return self.values.shape[0] * self.n_times
+        return self.index.shape[0] * self.n_times
+
+    def __getstate__(self) -> dict[str, Any]:  # h5py handles do not pickle: each worker opens its own
+        return {**self.__dict__, "_file": None, "_pid": None}
+
+    def _source(self, key: str) -> Any:
+        if self._arrays is not None:
+            return self._arrays[key]
+        if self._file is None or self._pid != os.getpid():
+            self._file, self._pid = h5py.File(self.path, "r"), os.getpid()
+        return self._file[f"{self.split}/{key}"]
+
+    def _read(self, key: str, i: int, times: slice | int) -> np.ndarray:
+        """Observed values of trajectory i at `times`: (Nobs, A) or (T', Nobs, A) float32, checked finite."""
+        data = np.asarray(self._source(key)[i, times])[..., self.index[i], :]
+        if not np.isfinite(data).all():
+            raise DatasetError(f"{self.path}: dataset /{self.split}/{key} has non-finite values in trajectory {i} "
+                               f"(times {times}); the file is damaged: delete it to regenerate it")
+        return data
+
+    def _observed_rms(self, key: str) -> float:
+        """RMS of the split's observed values of `key` over the first n_times samples (one trajectory at a time)."""
+        total = count = 0.0
+        for i in range(self.index.shape[0]):
+            block = self._read(key, i, slice(0, self.n_times)).astype(np.float64)
+            total, count = total + float(np.sum(block ** 2)), count + block.size
+        return float(np.sqrt(total / max(count, 1)))
+
+    def _noisy(self, i: int, k: int, values: np.ndarray, velocities: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        if self.noise_std is None:
+            return values, velocities
+        rng = np.random.default_rng([self.seed, i, k])
+        values = values + (self.noise_std[0] * rng.standard_normal(values.shape)).astype(np.float32)
+        return values, velocities + (self.noise_std[1] * rng.standard_normal(velocities.shape)).astype(np.float32)
 
     def __getitem__(self, index: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         i, k = divmod(int(index), self.n_times)
-        return self.points[i], self.values[i, k], self.velocities[i, k]
+        values, velocities = self._noisy(i, k, self._read(self.KEYS[0], i, k), self._read(self.KEYS[1], i, k))
+        return self.points[i], torch.from_numpy(np.ascontiguousarray(values)), \
+            torch.from_numpy(np.ascontiguousarray(velocities))
+
+    def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """All items stacked: points (n, Nobs, dim_B), values and velocities (n, n_times, Nobs, A)."""
+        values, velocities = [], []
+        for i in range(self.index.shape[0]):
+            v, w = self._read(self.KEYS[0], i, slice(0, self.n_times)), self._read(self.KEYS[1], i, slice(0, self.n_times))
+            pairs = [self._noisy(i, k, v[k], w[k]) for k in range(self.n_times)]
+            values.append(np.stack([p[0] for p in pairs]))
+            velocities.append(np.stack([p[1] for p in pairs]))
+        return self.points.numpy(), np.stack(values), np.stack(velocities)
+
+    def close(self) -> None:
+        if self._file is not None:
+            self._file.close()
+            self._file = None
+
+
+def worker_context() -> Optional[str]:
+    """Start method of DataLoader workers: the default one, or "fork" (POSIX) / "spawn" inside a process
+    whose default is foreign (a joblib loky worker of the local parallel launcher: torch's workers cannot
+    start under "loky")."""
+    method = mp.get_start_method(allow_none=True)
+    if method in (None, "fork", "spawn", "forkserver"):
+        return None
+    return "fork" if "fork" in mp.get_all_start_methods() else "spawn"
 
 
 def default_path(data_dir: str | Path, scene: Scene, cfg: DatasetConfig) -> Path:
@@ -48,13 +135,14 @@ def default_path(data_dir: str | Path, scene: Scene, cfg: DatasetConfig) -> Path
 
 class SnapshotDataModule(pl.LightningDataModule):
     """Args: scene (object or spec), data_dir, path (None → :func:`default_path`), on_mismatch
-    ('regenerate' | 'error'), batch_size, num_workers, noise (std of Gaussian noise added to the observed
-    training values and velocities, relative to their RMS over the split; seeded by `seed`), and the
-    :class:`DatasetConfig` fields."""
+    ('regenerate' | 'error'), batch_size (the global batch, shared among DDP processes), num_workers,
+    noise (std of Gaussian noise added to the observed training values and velocities, relative to their
+    RMS over the split; seeded by `seed`), in_memory (read the observations once instead of streaming them
+    from the file), shuffle_seed (seed of the per-epoch batch order), and the :class:`DatasetConfig` fields."""
 
     def __init__(self, scene: "Scene | dict", data_dir: str = "data", path: Optional[str] = None,
                  on_mismatch: str = "regenerate", batch_size: int = 32, num_workers: int = 0,
-                 noise: float = 0.0, **generation: Any) -> None:
+                 noise: float = 0.0, in_memory: bool = False, shuffle_seed: int = 0, **generation: Any) -> None:
         super().__init__()
         self.scene = build(scene) if isinstance(scene, dict) else scene
         self.config = DatasetConfig.from_mapping(generation)
@@ -62,17 +150,20 @@ class SnapshotDataModule(pl.LightningDataModule):
         self.on_mismatch = on_mismatch
         if int(batch_size) != batch_size or batch_size < 1:
             raise ValueError(f"data.batch_size must be an integer ≥ 1, got {batch_size!r}")
+        if int(num_workers) != num_workers or num_workers < 0:
+            raise ValueError(f"data.num_workers must be an integer ≥ 0, got {num_workers!r}")
         self.batch_size, self.num_workers = int(batch_size), int(num_workers)
         if not (np.isfinite(noise) and noise >= 0):
             raise ValueError(f"data.noise must be a finite number ≥ 0 (relative noise std), got {noise!r}")
-        self.noise = float(noise)
+        self.noise, self.in_memory, self.shuffle_seed = float(noise), bool(in_memory), int(shuffle_seed)
         self._splits: dict[str, TrajectorySplit] = {}
+        self._snapshots: dict[str, SnapshotDataset] = {}
 
     def prepare_data(self) -> None:
         ensure_dataset(self.scene, self.config, self.path, on_mismatch=self.on_mismatch)
 
     def split(self, name: str) -> TrajectorySplit:
-        """The validated split ('train', 'val', 'test'), loaded once."""
+        """The whole validated split ('train', 'val', 'test') in memory, loaded once (for evaluation)."""
         if name not in self._splits:
             self._splits[name] = load_split(self.path, name, scene=self.scene, cfg=self.config)
         return self._splits[name]
@@ -80,21 +171,30 @@ class SnapshotDataModule(pl.LightningDataModule):
     def setup(self, stage: Optional[str] = None) -> None:
         self.prepare_data()
 
+    def snapshots(self, split: str) -> SnapshotDataset:
+        """What a model may learn from, one snapshot per item: each trajectory's masked coarse observations
+        over the first `train_times` samples, with `noise` added to the training split (made once per split)."""
+        if split in self._snapshots:
+            return self._snapshots[split]
+        noise = self.noise if split == "train" else 0.0
+        self._snapshots[split] = SnapshotDataset(self.path, split, self.config.train_times, noise=noise,
+                                                 seed=self.config.seed + 7919, in_memory=self.in_memory)
+        return self._snapshots[split]
+
     def observations(self, split: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """What a model may learn from: each trajectory's masked coarse points (n, Nobs, dim_B), values and
-        velocities (n, T', Nobs, A) over the first `train_times` samples, with `noise` added to the training split."""
-        points, values, velocities = self.split(split).observed(self.config.train_times, velocities=True)
-        if self.noise > 0 and split == "train":
-            rng = np.random.default_rng(self.config.seed + 7919)
-            for arr in (values, velocities):
-                rms = float(np.sqrt(np.mean(arr.astype(np.float64) ** 2)))
-                arr += (self.noise * rms * rng.standard_normal(arr.shape)).astype(arr.dtype)
-        return points, values, velocities
+        """All of :meth:`snapshots` at once: points (n, Nobs, dim_B), values and velocities (n, T', Nobs, A)."""
+        return self.snapshots(split).arrays()
 
     def _loader(self, split: str, shuffle: bool) -> DataLoader:
-        ds = SnapshotDataset(*self.observations(split))
-        return DataLoader(ds, batch_size=self.batch_size, shuffle=shuffle, num_workers=self.num_workers,
-                          drop_last=shuffle and len(ds) > self.batch_size, persistent_workers=self.num_workers > 0)
+        """Training batches are shared among DDP ranks (:class:`GlobalBatchSampler`); every rank evaluates
+        the whole validation and test splits, so their losses equal the single-process ones."""
+        dataset = self.snapshots(split)
+        rank, world = (self.trainer.global_rank, self.trainer.world_size) if shuffle and self.trainer else (0, 1)
+        sampler = GlobalBatchSampler(len(dataset), self.batch_size, shuffle=shuffle, seed=self.shuffle_seed,
+                                     drop_last=shuffle and len(dataset) > self.batch_size, rank=rank, world_size=world)
+        return DataLoader(dataset, batch_size=sampler.per_rank_batch_size, sampler=sampler,
+                          num_workers=self.num_workers, persistent_workers=self.num_workers > 0,
+                          multiprocessing_context=worker_context() if self.num_workers > 0 else None)
 
     def train_dataloader(self) -> DataLoader:
         return self._loader("train", True)

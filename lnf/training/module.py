@@ -1,6 +1,7 @@
 """LightningModule: the Lagrangian neural field, its two losses, and the optimiser."""
 from __future__ import annotations
 
+import functools
 import math
 from typing import Any, Optional
 
@@ -36,12 +37,12 @@ class LNFModule(pl.LightningModule):
         points, values, velocities = batch
         out = self.model.losses(points, values, velocities)
         bs = points.shape[0]
-        on_step = stage == "train"
-        self.log(f"{stage}/loss", out["loss"], prog_bar=True, batch_size=bs, on_step=on_step, on_epoch=True)
-        self.log(f"{stage}/reconstruction", out["reconstruction"], batch_size=bs, on_step=on_step, on_epoch=True)
-        self.log(f"{stage}/projection", out["projection"], batch_size=bs, on_step=on_step, on_epoch=True)
-        if "velocity" in out:
-            self.log(f"{stage}/velocity", out["velocity"], batch_size=bs, on_step=on_step, on_epoch=True)
+        # epoch values are averaged over DDP ranks (each holds part of the global batch)
+        log = functools.partial(self.log, batch_size=bs, on_step=stage == "train", on_epoch=True, sync_dist=True)
+        log(f"{stage}/loss", out["loss"], prog_bar=True)
+        for key in ("reconstruction", "projection", "velocity"):
+            if key in out:
+                log(f"{stage}/{key}", out[key])
         if stage == "train":
             self.log("train/step_size", self.model.step_size.detach(), batch_size=bs, on_step=True, on_epoch=False)
         return out["loss"]

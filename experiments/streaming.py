@@ -1,0 +1,244 @@
+"""Training from an HDF5 dataset larger than the memory a run may use (issue 5, "Load").
+
+Generates a lifted-pendulum dataset of about ``--gib`` GiB (almost all of it the coarse fields and
+velocities that training reads), then trains on it in child processes placed in a memory cgroup limited to
+``--limit-gib`` GiB (the cgroup counts page cache too, as a cluster's does), and reports, per run, peak RSS,
+the cgroup's peak usage, the loader's throughput alone and the training throughput (snapshots/s):
+
+- ``lazy``: the default, snapshots streamed from the file (one read-only handle per process);
+- ``lazy, 2 workers``: the same with two DataLoader workers (one handle each);
+- ``in_memory`` under the limit: expected to be killed;
+- ``in_memory`` without a limit: the baseline the lazy throughput is compared with, as a ratio.
+
+    python experiments/streaming.py                    # 6 GiB of data, 1.5 GiB limit, 40 training steps
+    python experiments/streaming.py --gib 0.3 --limit-gib 0.2 --steps 5     # smoke
+
+Needs a writable memory cgroup (v2 ``/sys/fs/cgroup`` or v1 ``/sys/fs/cgroup/memory``, usually root);
+without one it says so and exits. Writes outputs/streaming/results.json.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import resource
+import subprocess
+import sys
+import time
+import uuid
+from pathlib import Path
+from typing import Any, Optional
+
+ROOT = Path(__file__).resolve().parents[1]
+# fine grid 8² (tiny), coarse grid 64² (what training reads), 100 samples all used for training
+GEN = dict(n_val=2, n_test=2, n_times=100, dt=0.05, train_times=100, fine_resolution=8, coarse_resolution=64,
+           observed_fraction=0.0625, seed=0)
+
+
+def bytes_per_trajectory() -> int:
+    """float32 (fine + coarse) × (fields + velocities) × samples × points."""
+    points = GEN["fine_resolution"] ** 2 + GEN["coarse_resolution"] ** 2
+    return 4 * 2 * GEN["n_times"] * points
+
+
+# ---------------------------------------------------------------------------------------------------
+# memory cgroups
+# ---------------------------------------------------------------------------------------------------
+class MemoryCgroup:
+    """A fresh memory cgroup (v2 or v1) with a hard limit; children join it before they exec."""
+
+    def __init__(self, limit_bytes: int) -> None:
+        name = f"lnf-streaming-{uuid.uuid4().hex[:8]}"
+        v2, v1 = Path("/sys/fs/cgroup"), Path("/sys/fs/cgroup/memory")
+        if (v2 / "cgroup.controllers").exists() and "memory" in (v2 / "cgroup.controllers").read_text():
+            self.path, self.limit_file, self.peak_file = v2 / name, "memory.max", "memory.peak"
+        elif (v1 / "memory.limit_in_bytes").exists():
+            self.path, self.limit_file, self.peak_file = v1 / name, "memory.limit_in_bytes", "memory.max_usage_in_bytes"
+        else:
+            raise RuntimeError("no memory cgroup controller under /sys/fs/cgroup")
+        self.path.mkdir()
+        (self.path / self.limit_file).write_text(str(limit_bytes))
+        if (self.path / "memory.memsw.limit_in_bytes").exists():  # v1: no escape into swap
+            try:
+                (self.path / "memory.memsw.limit_in_bytes").write_text(str(limit_bytes))
+            except OSError:
+                pass
+        if (self.path / "memory.swap.max").exists():  # v2
+            (self.path / "memory.swap.max").write_text("0")
+
+    def join(self) -> None:  # runs in the child between fork and exec
+        (self.path / "cgroup.procs").write_text(str(os.getpid()))
+
+    def peak(self) -> Optional[int]:
+        try:
+            return int((self.path / self.peak_file).read_text())
+        except (OSError, ValueError):
+            return None
+
+    def remove(self) -> None:
+        try:
+            self.path.rmdir()
+        except OSError:
+            pass
+
+
+# ---------------------------------------------------------------------------------------------------
+# the child: a loader pass, then training steps
+# ---------------------------------------------------------------------------------------------------
+def child(args: argparse.Namespace) -> None:
+    import lightning.pytorch as pl
+    import torch
+
+    from lnf.training.datamodule import SnapshotDataModule
+    from lnf.training.module import LNFModule
+
+    torch.set_num_threads(2)
+    n_train = int(args.n_train)
+    started = time.perf_counter()
+    dm = SnapshotDataModule({"_target_": "lnf.scenes.LiftedPendulum"}, path=args.path, on_mismatch="error",
+                            batch_size=args.batch_size, num_workers=args.workers, in_memory=args.mode == "in_memory",
+                            n_train=n_train, **GEN)
+    loader = dm.train_dataloader()
+    setup_seconds = time.perf_counter() - started
+    # the loader alone: reads, masking, collation
+    t0, seen = time.perf_counter(), 0
+    for i, (points, values, velocities) in enumerate(loader):
+        seen += values.shape[0]
+        if i + 1 >= args.loader_batches:
+            break
+    loader_rate = seen / (time.perf_counter() - t0)
+
+    class Clock(pl.Callback):
+        """Snapshots/s over the training steps after the first (warm-up) ones."""
+
+        def __init__(self) -> None:
+            self.start, self.count = None, 0
+
+        def on_train_batch_start(self, trainer, module, batch, batch_idx):
+            if batch_idx == args.warmup:
+                self.start = time.perf_counter()
+
+        def on_train_batch_end(self, trainer, module, outputs, batch, batch_idx):
+            if batch_idx >= args.warmup:
+                self.count += batch[1].shape[0]
+
+    from omegaconf import OmegaConf
+
+    conf = lambda name: OmegaConf.to_container(OmegaConf.load(ROOT / "conf" / f"{name}.yaml"))  # noqa: E731
+    module = LNFModule(scene={"_target_": "lnf.scenes.LiftedPendulum"}, model=conf("model/lnf"),
+                       quadrature=conf("quadrature/gauss_legendre"), optimizer=conf("optimizer/adam"))
+    clock = Clock()
+    trainer = pl.Trainer(accelerator="cpu", devices=1, max_steps=args.warmup + args.steps, limit_val_batches=0,
+                         logger=False, enable_checkpointing=False, enable_progress_bar=False,
+                         enable_model_summary=False, callbacks=[clock], use_distributed_sampler=False)
+    trainer.fit(module, train_dataloaders=loader)
+    train_rate = clock.count / (time.perf_counter() - clock.start)
+    own = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    workers = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss * 1024
+    print("RESULT " + json.dumps({"setup_seconds": setup_seconds, "loader_snapshots_per_s": loader_rate,
+                                  "train_snapshots_per_s": train_rate, "peak_rss_bytes": own,
+                                  "worker_peak_rss_bytes": workers if args.workers else 0}))
+
+
+# ---------------------------------------------------------------------------------------------------
+# the parent
+# ---------------------------------------------------------------------------------------------------
+def make_dataset(gib: float, data_dir: Path) -> tuple[Path, int]:
+    from lnf.dataset import DatasetConfig, ensure_dataset
+    from lnf.scenes import LiftedPendulum
+    from lnf.training.datamodule import default_path
+
+    n_train = max(int(gib * 2 ** 30 / bytes_per_trajectory()), 4)
+    scene, cfg = LiftedPendulum(), DatasetConfig(n_train=n_train, **GEN)
+    path = default_path(data_dir, scene, cfg)
+    t0 = time.perf_counter()
+    ensure_dataset(scene, cfg, path)
+    print(f"dataset {path}: {path.stat().st_size / 2 ** 30:.2f} GiB, {n_train} training trajectories "
+          f"({time.perf_counter() - t0:.0f} s to generate or check)", flush=True)
+    return path, n_train
+
+
+def run_child(args: argparse.Namespace, path: Path, n_train: int, mode: str, workers: int,
+              limit: Optional[int]) -> dict[str, Any]:
+    cmd = [sys.executable, __file__, "--child", "--mode", mode, "--workers", str(workers), "--path", str(path),
+           "--n-train", str(n_train), "--steps", str(args.steps), "--warmup", str(args.warmup),
+           "--batch-size", str(args.batch_size), "--loader-batches", str(args.loader_batches)]
+    group = MemoryCgroup(limit) if limit else None
+    label = f"{mode}" + (f", {workers} workers" if workers else "") + (f", limit {limit / 2 ** 30:.2f} GiB" if limit else ", no limit")
+    print(f"running {label} ...", flush=True)
+    t0 = time.perf_counter()
+    proc = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT, preexec_fn=group.join if group else None)
+    row: dict[str, Any] = {"mode": mode, "workers": workers, "limit_bytes": limit, "returncode": proc.returncode,
+                           "wall_seconds": time.perf_counter() - t0, "cgroup_peak_bytes": group.peak() if group else None}
+    if group:
+        group.remove()
+    lines = [l for l in proc.stdout.splitlines() if l.startswith("RESULT ")]
+    if proc.returncode == 0 and lines:
+        row.update(json.loads(lines[-1][len("RESULT "):]))
+    else:
+        row["error"] = "killed by the out-of-memory killer (SIGKILL)" if proc.returncode == -9 else proc.stderr[-1500:]
+    print(f"  -> {json.dumps({k: v for k, v in row.items() if k != 'error'})}" + (f"\n  {row['error']}" if "error" in row else ""),
+          flush=True)
+    return row
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--gib", type=float, default=6.0, help="dataset size [GiB]")
+    parser.add_argument("--limit-gib", type=float, default=1.5, help="memory limit of a training process [GiB]")
+    parser.add_argument("--steps", type=int, default=40, help="timed training steps (after --warmup)")
+    parser.add_argument("--warmup", type=int, default=3)
+    parser.add_argument("--batch-size", type=int, default=32)
+    parser.add_argument("--loader-batches", type=int, default=200, help="batches of the loader-only pass")
+    parser.add_argument("--data-dir", type=Path, default=ROOT / "data" / "streaming")
+    parser.add_argument("--out", type=Path, default=ROOT / "outputs" / "streaming" / "results.json")
+    parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
+    parser.add_argument("--mode", default="lazy", help=argparse.SUPPRESS)
+    parser.add_argument("--workers", type=int, default=0, help=argparse.SUPPRESS)
+    parser.add_argument("--path", help=argparse.SUPPRESS)
+    parser.add_argument("--n-train", type=int, help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.child:
+        child(args)
+        return
+    limit = int(args.limit_gib * 2 ** 30)
+    try:
+        MemoryCgroup(limit).remove()
+    except (OSError, RuntimeError) as exc:
+        sys.exit(f"streaming.py needs a writable memory cgroup to place the limit ({exc}); run it as root on a "
+                 f"machine with cgroups, or see the README for the numbers measured on ours")
+    path, n_train = make_dataset(args.gib, args.data_dir)
+    rows = [run_child(args, path, n_train, "lazy", 0, limit),
+            run_child(args, path, n_train, "lazy", 2, limit),
+            run_child(args, path, n_train, "in_memory", 0, limit),
+            run_child(args, path, n_train, "in_memory", 0, None)]
+    base = rows[-1]
+    for row in rows:
+        if "train_snapshots_per_s" in row and "train_snapshots_per_s" in base:
+            row["train_rate_vs_in_memory"] = row["train_snapshots_per_s"] / base["train_snapshots_per_s"]
+            row["loader_rate_vs_in_memory"] = row["loader_snapshots_per_s"] / base["loader_snapshots_per_s"]
+    result = {"dataset": str(path), "dataset_bytes": path.stat().st_size, "n_train": n_train, "generation": GEN,
+              "limit_bytes": limit, "steps": args.steps, "batch_size": args.batch_size, "runs": rows,
+              "machine": {"platform": platform.platform(), "processor": platform.processor(), "cpus": os.cpu_count()},
+              "date": time.strftime("%Y-%m-%d")}
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = args.out.with_name(args.out.name + ".tmp")
+    tmp.write_text(json.dumps(result, indent=2))
+    os.replace(tmp, args.out)
+    print(f"\ndataset {path.stat().st_size / 2 ** 30:.2f} GiB, limit {args.limit_gib:g} GiB (cgroup, page cache included)")
+    print(f"{'run':34s} {'peak RSS':>9s} {'cgroup':>8s} {'loader/s':>9s} {'train/s':>8s} {'vs in-mem':>9s}")
+    for row in rows:
+        name = row["mode"] + (f" ({row['workers']} workers)" if row["workers"] else "") + (" limited" if row["limit_bytes"] else " unlimited")
+        if "error" in row:
+            print(f"{name:34s} {row['error'][:60]}")
+            continue
+        rss = (row["peak_rss_bytes"] + row["worker_peak_rss_bytes"]) / 2 ** 30
+        cg = f"{row['cgroup_peak_bytes'] / 2 ** 30:.2f}G" if row["cgroup_peak_bytes"] else "-"
+        print(f"{name:34s} {rss:8.2f}G {cg:>8s} {row['loader_snapshots_per_s']:9.0f} {row['train_snapshots_per_s']:8.1f} "
+              f"{row.get('train_rate_vs_in_memory', float('nan')):9.2f}")
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()

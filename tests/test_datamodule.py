@@ -1,0 +1,89 @@
+"""SnapshotDataModule: lazy HDF5 snapshots equal the in-memory ones; noise, workers, damaged files."""
+from __future__ import annotations
+
+import pickle
+
+import h5py
+import numpy as np
+import pytest
+import torch
+
+from lnf.dataset import DatasetError, load_split
+from lnf.training.datamodule import SnapshotDataModule
+
+GEN = dict(n_train=3, n_val=1, n_test=2, n_times=12, dt=0.05, train_times=6, fine_resolution=8,
+           coarse_resolution=8, observed_fraction=0.25, seed=0)
+
+
+def _module(tmp_path, **kwargs) -> SnapshotDataModule:
+    dm = SnapshotDataModule({"_target_": "lnf.scenes.LiftedPendulum"}, data_dir=str(tmp_path), batch_size=4,
+                            **GEN, **kwargs)
+    dm.prepare_data()
+    return dm
+
+
+@pytest.fixture(scope="module")
+def data_dir(tmp_path_factory):
+    return _module(tmp_path_factory.mktemp("data")).path.parent
+
+
+def _all(loader):
+    return [torch.cat(parts) for parts in zip(*loader)]
+
+
+def test_snapshots_are_the_masked_coarse_observations(data_dir):
+    dm = _module(data_dir)
+    ds = dm.snapshots("train")
+    assert ds._arrays is None and len(ds) == 3 * 6
+    split = load_split(dm.path, "train")
+    idx = np.flatnonzero(split.masks[1])
+    points, values, velocities = ds[1 * 6 + 4]
+    np.testing.assert_array_equal(points.numpy(), split.coarse_points[idx])
+    np.testing.assert_array_equal(values.numpy(), split.coarse_fields[1, 4, idx])
+    np.testing.assert_array_equal(velocities.numpy(), split.coarse_velocities[1, 4, idx])
+
+
+@pytest.mark.parametrize("noise", [0.0, 0.1])
+def test_lazy_equals_in_memory_and_workers_equal_main_process(data_dir, noise):
+    lazy = _module(data_dir, noise=noise).train_dataloader()
+    memory = _module(data_dir, noise=noise, in_memory=True).train_dataloader()
+    workers = _module(data_dir, noise=noise, num_workers=2).train_dataloader()
+    a, b, c = _all(lazy), _all(memory), _all(workers)
+    for x, y, z in zip(a, b, c):
+        assert torch.equal(x, y) and torch.equal(x, z)
+
+
+def test_noise_has_the_stated_size_and_only_on_training(data_dir):
+    clean, noisy = _module(data_dir), _module(data_dir, noise=0.1)
+    _, v0, w0 = clean.observations("train")
+    _, v1, w1 = noisy.observations("train")
+    assert np.std(v1 - v0) == pytest.approx(0.1 * np.sqrt(np.mean(v0.astype(np.float64) ** 2)), rel=0.1)
+    assert np.std(w1 - w0) == pytest.approx(0.1 * np.sqrt(np.mean(w0.astype(np.float64) ** 2)), rel=0.1)
+    assert all(np.array_equal(x, y) for x, y in zip(clean.observations("val"), noisy.observations("val")))
+    # the stacked observations are the items of the dataset
+    ds = noisy.snapshots("train")
+    np.testing.assert_array_equal(v1[2, 3], ds[2 * 6 + 3][1].numpy())
+
+
+def test_lazy_dataset_pickles_without_its_file_handle(data_dir):
+    ds = _module(data_dir).snapshots("train")
+    ds[0]
+    assert ds._file is not None
+    copy = pickle.loads(pickle.dumps(ds))
+    assert copy._file is None and torch.equal(copy[5][1], ds[5][1])
+    ds.close()
+
+
+def test_damaged_snapshot_names_file_key_and_trajectory(tmp_path):
+    dm = _module(tmp_path)
+    with h5py.File(dm.path, "r+") as f:
+        f["train/coarse_fields"][2, 1] = np.nan
+    ds = dm.snapshots("train")
+    ds[2 * 6]  # an intact snapshot reads fine
+    with pytest.raises(DatasetError, match=r"/train/coarse_fields .*trajectory 2"):
+        ds[2 * 6 + 1]
+
+
+def test_bad_settings(tmp_path):
+    with pytest.raises(ValueError, match="data.num_workers"):
+        SnapshotDataModule({"_target_": "lnf.scenes.LiftedPendulum"}, data_dir=str(tmp_path), num_workers=-1, **GEN)
