@@ -21,7 +21,8 @@ from torch import Tensor, nn
 
 from lnf.quadrature import Quadrature, QuadratureRule
 from lnf.reduced_model import ReducedModel, as_field
-from lnf.reduction import project_velocity, projection_loss, pullback_mass_matrix, reconstruction_loss, reduce
+from lnf.reduction import (best_start, project_velocity, projection_loss, pullback_mass_matrix, reconstruction_loss,
+                           reduce, start_grid)
 from lnf.scenes.base import Scene
 from lnf.siren import ModulatedSiren
 
@@ -81,6 +82,8 @@ class LagrangianNeuralField(ReducedModel):
         latent_dim: d ≥ 1.
         width, depth, w0, hyper_width, hyper_depth, hyper_init_scale: see :class:`ModulatedSiren`.
         reduction_steps: K ≥ 1.
+        reduction_starts, start_radius: with reduction_starts = S > 1 the K steps start from the best of
+            S^d candidate codes on [−start_radius, start_radius]^d (a coarse search; 1 = from q̃ = 0, the paper).
         step_size: initial α of the reduction (learned as log α).
         velocity_weight: λ_v of the optional tangent (velocity) reconstruction loss, not in the paper;
             0 gives the paper's loss ℓ^r + ℓ^p exactly (see :meth:`losses`).
@@ -103,6 +106,8 @@ class LagrangianNeuralField(ReducedModel):
         hyper_depth: int = 1,
         hyper_init_scale: float = 0.1,
         reduction_steps: int = 3,
+        reduction_starts: int = 1,
+        start_radius: float = 1.0,
         step_size: float = 0.1,
         velocity_weight: float = 0.1,
         quadrature: Optional[QuadratureRule] = None,
@@ -120,6 +125,12 @@ class LagrangianNeuralField(ReducedModel):
                                     width=width, depth=depth, w0=w0, hyper_width=hyper_width,
                                     hyper_depth=hyper_depth, hyper_init_scale=hyper_init_scale)
         self.reduction_steps = int(reduction_steps)
+        if int(reduction_starts) != reduction_starts or reduction_starts < 1:
+            raise ValueError(f"model.reduction_starts must be an integer ≥ 1, got {reduction_starts!r}")
+        if not start_radius > 0:
+            raise ValueError(f"model.start_radius must be > 0, got {start_radius!r}")
+        self.register_buffer("starts", start_grid(int(latent_dim), int(reduction_starts), float(start_radius)),
+                             persistent=False)
         self.log_step_size = nn.Parameter(torch.tensor(math.log(step_size)))
         self.latent_dynamics: Optional[nn.Module] = None
         if dynamics is not None and not _is_lagrangian(dynamics):
@@ -135,7 +146,11 @@ class LagrangianNeuralField(ReducedModel):
         points = points.to(values)
         self._check_observation(points, values, "values")
         density = self._density(points)
-        return reduce(self.field, points, values, density, self.step_size, steps or self.reduction_steps)
+        return self._reduce(points, values, density, steps or self.reduction_steps)
+
+    def _reduce(self, points: Tensor, values: Tensor, density: Tensor, steps: int) -> Tensor:
+        codes = best_start(self.field, points, values, density, self.starts) if len(self.starts) > 1 else None
+        return reduce(self.field, points, values, density, self.step_size, steps, codes=codes)
 
     def dynamics(self, quadrature: "Quadrature | QuadratureRule | None" = None) -> Any:
         """The pulled-back Lagrangian system, or the learned latent dynamics of the black-box baseline."""
@@ -155,13 +170,13 @@ class LagrangianNeuralField(ReducedModel):
         """
         density = self._density(points)
         K = self.reduction_steps
-        codes = reduce(self.field, points, values, density, self.step_size, K)
+        codes = self._reduce(points, values, density, K)
         jet = self.field.jet(codes, points, order=1)
         rec = reconstruction_loss(jet.value, values, density)
         volume = math.prod(hi - lo for lo, hi in self.scene.bounds)
         weights = volume * density / points.shape[-2]  # Monte-Carlo quadrature of the observed points
         mass = pullback_mass_matrix(jet.J, weights)
-        reprojected = reduce(self.field, points, jet.value, density, self.step_size, K)
+        reprojected = self._reduce(points, jet.value, density, K)
         proj = projection_loss(codes, reprojected, mass)
         total = rec + proj
         out = {"reconstruction": rec.mean(), "projection": proj.mean()}

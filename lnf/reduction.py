@@ -47,6 +47,31 @@ def reduce(
     return codes
 
 
+def start_grid(latent_dim: int, per_axis: int, radius: float) -> Tensor:
+    """Candidate initial codes: a tensor grid of `per_axis` points per axis on [−radius, radius]^d,
+    (per_axis^d, d); a single point is the origin (the paper's q̃^0 = 0)."""
+    if per_axis == 1:
+        return torch.zeros(1, latent_dim)
+    axis = torch.linspace(-radius, radius, per_axis)
+    return torch.cartesian_prod(*[axis] * latent_dim).reshape(-1, latent_dim)
+
+
+def best_start(field: ModulatedSiren, points: Tensor, values: Tensor, density: Tensor, starts: Tensor) -> Tensor:
+    """Per batch element, the candidate of `starts` (S, d) with the smallest ℓ^r: (B, d).
+
+    A coarse search before the gradient steps, for fields whose gradient from q̃ = 0 carries no information
+    (a bump far from where φ(0) puts it); the choice is a constant of the graph (no gradient flows through it).
+    """
+    B, S = values.shape[0], starts.shape[0]
+    starts = starts.to(values)
+    with torch.no_grad():
+        codes = starts.repeat(B, 1)  # row b·S + s is start s for element b
+        pts = points if points.ndim == 2 else points.repeat_interleave(S, 0)
+        dens = density if density.ndim == 1 else density.repeat_interleave(S, 0)
+        loss = reconstruction_loss(field(codes, pts), values.repeat_interleave(S, 0), dens)
+        return starts[loss.view(B, S).argmin(1)]
+
+
 def pullback_mass_matrix(J: Tensor, weights: Tensor) -> Tensor:
     """M̃ = Σ_j w_j ω0_j J_jᵀ J_j (B, d, d); `weights` already include ω0: (N,) or (B, N)."""
     return torch.einsum("bn,bnai,bnaj->bij", weights.expand(J.shape[:2]), J, J)

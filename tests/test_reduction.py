@@ -109,3 +109,47 @@ def test_singular_mass_matrix_gives_nan_not_a_crash():
     mass = torch.tensor([[[2.0]], [[0.0]]])
     out = solve_mass(mass, torch.tensor([[4.0], [1.0]]))
     assert out[0].item() == 2.0 and torch.isnan(out[1]).all()
+
+
+def test_start_grid():
+    from lnf.reduction import start_grid
+
+    assert torch.equal(start_grid(2, 1, 1.0), torch.zeros(1, 2))
+    grid = start_grid(2, 3, 0.5)
+    assert grid.shape == (9, 2) and grid.abs().max() == 0.5 and (grid == 0).all(1).sum() == 1
+
+
+@pytest.mark.parametrize("batched_points", [False, True])
+def test_best_start_is_the_candidate_of_least_reconstruction_loss(batched_points):
+    from lnf.reduction import best_start, reconstruction_loss, start_grid
+
+    model = _model(1)
+    points = midpoint_grid(8, model.scene.bounds).double()
+    codes = torch.tensor([[-0.9], [0.1], [0.7]], dtype=torch.float64)
+    values = model.decode(codes, points)
+    starts = start_grid(1, 9, 1.0).double()
+    density = model.scene.density(points)
+    if batched_points:
+        points, density = points.expand(3, -1, -1), density.expand(3, -1)
+    chosen = best_start(model.field, points, values, density, starts)
+    for b in range(3):
+        losses = torch.stack([reconstruction_loss(model.field(s[None], points if not batched_points else points[b:b + 1]),
+                                                  values[b:b + 1], density if not batched_points else density[b:b + 1])[0]
+                              for s in starts])
+        assert chosen[b] == starts[losses.argmin()]
+    assert torch.equal(chosen, starts[(codes - starts.T).abs().argmin(1)])  # here: the nearest candidate
+
+
+def test_multi_start_reduction_finds_a_code_far_from_zero():
+    """With q̃ far from 0 a few steps from 0 stay far; starting from the best of a grid lands on it."""
+    model = _model(1)
+    points = midpoint_grid(16, model.scene.bounds).double()
+    codes = torch.tensor([[2.6], [-2.2]], dtype=torch.float64)
+    values = model.decode(codes, points)
+    far = LagrangianNeuralField(LiftedPendulum(), latent_dim=1, width=32, hyper_init_scale=1.0, reduction_starts=41,
+                                start_radius=3.0).double()
+    far.load_state_dict(model.state_dict())
+    assert (model.reduce(points, values) - codes).abs().min() > 1.0
+    assert (far.reduce(points, values) - codes).abs().max() < 0.08
+    with pytest.raises(ValueError, match="reduction_starts"):
+        LagrangianNeuralField(LiftedPendulum(), reduction_starts=0)
