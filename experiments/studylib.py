@@ -82,15 +82,28 @@ class Study:
     def method(self, name: str, extra: Sequence[str] = ()) -> list[str]:
         """Overrides selecting method `name` with this mode's settings, plus `extra`."""
         over = [*self.base(), *METHODS[name]]
+        if name == "latent_mlp":  # its RK4 takes none of the midpoint settings a scene experiment may set
+            over += [f"~integrator.{key}" for key in self.unused_experiment_keys("integrator", "integrator/rk4")]
         if name in ("lnf", "latent_mlp"):
             over += self.neural()
             if name == "latent_mlp" and self.mode == "smoke":
                 over += ["dynamics.iterations=10"]
-        elif self.mode == "smoke":
-            over += ["evaluation.max_reduction_points=64"]
-            if name == "full_order":
-                over += ["model.resolution=12"]
+        else:
+            over += [f"~model.{key}" for key in self.unused_experiment_keys("model", f"model/{name}")]
+            if self.mode == "smoke":
+                over += ["evaluation.max_reduction_points=64"]
+                if name == "full_order":
+                    over += ["model.resolution=12"]
         return [*over, *extra]
+
+    def unused_experiment_keys(self, node: str, config: str) -> list[str]:
+        """Keys of the scene experiment's `node` (e.g. a SIREN width under `model`) that `config` (e.g.
+        model/pod) does not have: they are deleted, since `+experiment=<scene>` merges them into any choice."""
+        from omegaconf import OmegaConf
+
+        experiment = OmegaConf.load(ROOT / "conf" / "experiment" / f"{self.scene}.yaml")
+        own = OmegaConf.load(ROOT / "conf" / f"{config}.yaml")
+        return sorted(set(experiment.get(node) or {}) - set(own))
 
     def supports(self, name: str) -> bool:
         """Whether method `name` can run this study's scene (see UNSUPPORTED)."""

@@ -171,3 +171,15 @@ def test_streaming_benchmark_smoke(tmp_path):
     lazy, baseline = runs[("lazy", 0, True)], runs[("in_memory", 0, False)]
     assert lazy["returncode"] == 0 and lazy["train_snapshots_per_s"] > 0 and lazy["peak_rss_bytes"] > 0
     assert baseline["train_rate_vs_in_memory"] == 1.0 and lazy["limit_bytes"] == int(1.5 * 2 ** 30)
+
+
+def test_baselines_drop_the_neural_settings_of_a_scene_experiment():
+    """+experiment=bump sets a SIREN width: POD and the full-order model must not receive it."""
+    sys.path.insert(0, str(ROOT / "experiments"))
+    import studylib as S
+
+    study = S.Study(name="x", scene="bump", mode="reduced", out=ROOT / "outputs" / "unused", threads=1)
+    assert {"~model.width", "~model.reduction_starts"} <= set(study.method("pod"))
+    assert not any(o.startswith("~") for o in study.method("lnf"))
+    pendulum = S.Study(name="x", scene="pendulum", mode="reduced", out=ROOT / "outputs" / "unused", threads=1)
+    assert not any(o.startswith("~") for o in pendulum.method("pod"))

@@ -90,3 +90,11 @@ def test_newton_solves_midpoint_steps_the_fixed_point_iteration_cannot(dyn):
     T, V = dyn.energies(traj.q, traj.v)
     energy = (T + V).numpy()
     assert np.abs(energy - energy[:, :1]).max() < 0.05 * energy[:, 0].max()  # bounded, not drifting
+
+
+def test_settings_of_another_integrator_are_a_clear_error():
+    """+experiment=<scene> sets integrator.order for the midpoint rule; RK4 must say how to drop it."""
+    from lnf.integrators import get_integrator
+
+    with pytest.raises(ValueError, match=r"integrator rk4 takes no integrator.order .* ~integrator.order"):
+        get_integrator({"name": "rk4", "order": 2})

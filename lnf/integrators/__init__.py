@@ -1,6 +1,7 @@
 """Integrators of the reduced dynamics (one Hydra option each)."""
 from __future__ import annotations
 
+import inspect
 from typing import Any
 
 from lnf.integrators.base import FixedStepIntegrator, Integrator, RolloutDivergedError, Trajectory
@@ -24,6 +25,12 @@ def get_integrator(spec: "str | Integrator | dict[str, Any]") -> Integrator:
     name = aliases.get(name, name)
     if name not in INTEGRATORS:
         raise ValueError(f"unknown integrator {spec!r}; expected one of {sorted(INTEGRATORS)}")
+    accepted = inspect.signature(INTEGRATORS[name]).parameters
+    unknown = sorted(k for k in kwargs if k not in accepted)
+    if unknown:
+        raise ValueError(f"integrator {name} takes no {', '.join('integrator.' + k for k in unknown)} (it takes "
+                         f"{', '.join(sorted(accepted)) or 'no settings'}); an experiment config may have set it for "
+                         f"another integrator: remove it with {' '.join('~integrator.' + k for k in unknown)}")
     return INTEGRATORS[name](**kwargs)
 
 
