@@ -58,7 +58,11 @@ class MemoryCgroup:
         else:
             raise RuntimeError("no memory cgroup controller under /sys/fs/cgroup")
         self.path.mkdir()
-        (self.path / self.limit_file).write_text(str(limit_bytes))
+        try:
+            (self.path / self.limit_file).write_text(str(limit_bytes))
+        except OSError:  # e.g. a v2 hierarchy whose memory controller is not delegated here
+            self.remove()
+            raise
         if (self.path / "memory.memsw.limit_in_bytes").exists():  # v1: no escape into swap
             try:
                 (self.path / "memory.memsw.limit_in_bytes").write_text(str(limit_bytes))
