@@ -20,7 +20,8 @@ Layout (``FORMAT_VERSION`` 1)::
     /{split}/masks               (n, Nc)         bool     exactly round(observed_fraction·Nc) True per row
 
 Files are written atomically (temporary file, then ``os.replace``), so a file at the target path is
-always complete; a temporary left by a killed writer is removed by the next generation of that file. Every user-facing failure raises :class:`DatasetError` naming the file and the key.
+always complete; a temporary left by a killed writer is removed by the next generation of that file.
+Every user-facing failure raises :class:`DatasetError` naming the file and the key.
 """
 from __future__ import annotations
 
@@ -431,6 +432,11 @@ def ensure_dataset(scene: Any, cfg: DatasetConfig, path: str | os.PathLike,
 # ---------------------------------------------------------------------------------------------------
 # loading
 # ---------------------------------------------------------------------------------------------------
+def observed_index(masks: np.ndarray) -> np.ndarray:
+    """Each trajectory's observed coarse points as sorted indices (n, Nobs), from its masks (n, Nc) bool."""
+    return np.stack([np.flatnonzero(m) for m in masks])
+
+
 @dataclass
 class TrajectorySplit:
     """One split of a dataset, in memory. n trajectories, T samples, Nf fine / Nc coarse points.
@@ -470,7 +476,7 @@ class TrajectorySplit:
         t = T if max_time is None else int(max_time)
         if not 1 <= t <= T:
             raise DatasetError(f"max_time must be in [1, {T}], got {max_time!r}")
-        idx = np.stack([np.flatnonzero(m) for m in self.masks])  # (n, Nobs)
+        idx = observed_index(self.masks)
         points = self.coarse_points[idx]
         values = np.take_along_axis(self.coarse_fields[:, :t], idx[:, None, :, None], axis=2)
         if not velocities:

@@ -15,7 +15,8 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader, Dataset
 
-from lnf.dataset import DatasetConfig, DatasetError, TrajectorySplit, ensure_dataset, generation_attributes, load_split
+from lnf.dataset import (DatasetConfig, DatasetError, TrajectorySplit, ensure_dataset, generation_attributes,
+                         load_split, observed_index)
 from lnf.model import build
 from lnf.scenes.base import Scene
 from lnf.training.sampling import GlobalBatchSampler
@@ -50,7 +51,7 @@ class SnapshotDataset(Dataset):
         self.noise, self.seed = float(noise), int(seed)
         with h5py.File(self.path, "r") as f:
             masks = f[f"{split}/masks"][...]
-            self.index = np.stack([np.flatnonzero(m) for m in masks])  # (n, Nobs), sorted per trajectory
+            self.index = observed_index(masks)  # (n, Nobs)
             self.points = torch.as_tensor(f["grids/coarse"][...][self.index], dtype=torch.float32)
             self._arrays = {key: _read_leading(f[f"{split}/{key}"], self.n_times) for key in self.KEYS} \
                 if in_memory else None

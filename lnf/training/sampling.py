@@ -52,17 +52,18 @@ class GlobalBatchSampler(Sampler[int]):
         return [(a, b) for a, b in spans
                 if b - a == self.batch_size or not (self.drop_last or b - a < self.world_size)]
 
+    def _shares(self) -> list[tuple[int, int]]:
+        """(lo, hi) positions in the epoch's order of this rank's share of each global batch kept."""
+        return [(a + self.rank * (b - a) // self.world_size, a + (self.rank + 1) * (b - a) // self.world_size)
+                for a, b in self._batches()]
+
     def __iter__(self) -> Iterator[int]:
         if self.shuffle:
             order = torch.randperm(self.n, generator=torch.Generator().manual_seed(self.seed + self.epoch))
         else:
             order = torch.arange(self.n)
-        for start, stop in self._batches():
-            size = stop - start
-            lo = start + self.rank * size // self.world_size
-            hi = start + (self.rank + 1) * size // self.world_size
+        for lo, hi in self._shares():
             yield from order[lo:hi].tolist()
 
     def __len__(self) -> int:
-        return sum((self.rank + 1) * (b - a) // self.world_size - self.rank * (b - a) // self.world_size
-                   for a, b in self._batches())
+        return sum(hi - lo for lo, hi in self._shares())
