@@ -106,3 +106,48 @@ def test_bad_parameters_are_named():
         ElasticCantilever(mesh=(10,))
     with pytest.raises(ValueError, match="scene.deflection_range"):
         ElasticCantilever(deflection_range=(0.1, -0.1))
+    with pytest.raises(ValueError, match="scene.release"):
+        ElasticCantilever(release="tip")
+
+
+def test_tangent_stiffness_is_the_force_jacobian(rng):
+    """The coloured central differences give every entry of −∂f/∂u, as a column-by-column difference does."""
+    mesh = StructuredQ1Mesh(1.0, 0.4, 5, 3)
+    lam, mu = lame(200.0, 0.3)
+    u = 0.05 * rng.standard_normal((mesh.n_nodes, 2))
+    eps, n = 1e-6, 2 * mesh.n_nodes
+    bumps = np.eye(n).reshape(n, mesh.n_nodes, 2) * eps
+    columns = -(mesh.internal_force(u + bumps, lam, mu) - mesh.internal_force(u - bumps, lam, mu)) / (2 * eps)
+    dense = columns.reshape(n, n).T
+    np.testing.assert_allclose(mesh.tangent_stiffness(u, lam, mu).toarray(), 0.5 * (dense + dense.T), atol=1e-6)
+
+
+def test_modal_release_is_an_equilibrium_that_excites_one_mode(rng):
+    """The modal release is at rest under gravity plus K_t δ φ₁; its linear part is δ φ₁, and released it keeps
+    the fast modes nearly at rest, where the Euler–Bernoulli shape (not an FEM equilibrium) does not."""
+    small = dict(mesh=(12, 4), tip_speed_range=(0.0, 0.0), deflection_range=(-0.05, 0.05))
+    modal = ElasticCantilever(release="modal", **small)
+    u_g, mode = modal._modal_reference()
+    assert mode[modal._tip, 1].mean() == pytest.approx(1.0)
+    K = modal.mesh.tangent_stiffness(u_g, modal.lam, modal.mu)
+    Km = (K @ mode.reshape(-1)).reshape(-1, 2)[~modal.mesh.clamped]
+    ratio = Km / (modal.nodal_mass[~modal.mesh.clamped, None] * mode[~modal.mesh.clamped])  # ω₁² everywhere
+    big = np.abs(mode[~modal.mesh.clamped]) > 0.05 * np.abs(mode).max()
+    np.testing.assert_allclose(ratio[big], np.median(ratio[big]), rtol=1e-6)
+    for delta in (0.01, 0.002):  # nonlinear remainder O(δ²)
+        u0 = modal.modal_release(np.array([delta]))[0]
+        assert np.abs(u0 - u_g - delta * mode).max() < 30 * delta**2
+    # released at rest from tip deflections up to 0.05 m, over one period: velocity outside span φ₁ (the
+    # modal release's share grows like δ: the nonlinear slaving of the other modes)
+    times = 0.05 * np.arange(25)
+    weight = np.sqrt(np.repeat(modal.nodal_mass, 2))
+
+    def outside(scene):
+        states = scene.simulate(scene.sample_initial_states(2, np.random.default_rng(1)), times)
+        _, v, _ = scene.unpack(states)
+        v = v.reshape(-1, v.shape[-2] * 2) * weight
+        m = mode.reshape(-1) * weight
+        return np.linalg.norm(v - np.outer(v @ m / (m @ m), m)) / np.linalg.norm(v)
+
+    shape = ElasticCantilever(release="shape", **small)
+    assert outside(modal) < 0.06 < 0.2 < outside(shape)

@@ -156,6 +156,20 @@ def test_scenes_script_measures_a_tiny_checkpoint(scene, tmp_path):
         assert len(result["pod"]) == 2 and len(result["oracle_projection"]) == 2
 
 
+def test_elastic_diagnostics_smoke(tmp_path):
+    """Content of both releases on a tiny mesh, and the energy and gradient comparison of a tiny checkpoint."""
+    out = _run(["experiments/elastic_diagnostics.py", "--content", "--runs", "2", "--mesh", "6", "3"]).stdout
+    assert "release = 'shape'" in out and "release = 'modal'" in out and "cubic 2-D manifold" in out
+    run = tmp_path / "run"
+    _run(["-m", "lnf.train", "+experiment=elastic", "trainer=smoke", "logger=csv", "scene.mesh=[6,3]",
+          "data.n_train=2", "data.n_val=1", "data.n_test=1", "data.n_times=8", "data.train_times=4",
+          "data.fine_resolution=8", "data.coarse_resolution=8", "model.width=16", "model.hyper_width=8",
+          "quadrature.order=[4,3]", "evaluation.long_steps=4", "evaluation.long_trajectories=1",
+          f"paths.data_dir={tmp_path / 'data'}", f"hydra.run.dir={run}"])
+    out = _run(["experiments/elastic_diagnostics.py", "--ckpt", str(run / "checkpoints" / "last.ckpt")]).stdout
+    assert "T_FEM" in out and "velocity-gradient relative error" in out
+
+
 def test_streaming_benchmark_smoke(tmp_path):
     """experiments/streaming.py on a tiny dataset: it needs a writable memory cgroup, and says so without one."""
     out = tmp_path / "results.json"

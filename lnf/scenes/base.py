@@ -123,6 +123,11 @@ class Scene:
         """Per-trajectory load parameters (n, c) read from full-order initial states (n, S), or None."""
         return None
 
+    def clamp_factor(self, points: Tensor) -> tuple[Tensor, Tensor]:
+        """(s, ∇s) at points (…, N, dim_B) → (…, N), (…, N, dim_B): a factor vanishing where the field is
+        clamped, for a field that meets the clamp exactly (:class:`lnf.boundary.ClampedField`)."""
+        raise ValueError(f"scene {self.name!r} has no clamped boundary; set model.clamp=false")
+
     # -- the full-order model ------------------------------------------------------------------
     def sample_initial_states(self, n: int, rng: np.random.Generator) -> np.ndarray:
         raise NotImplementedError

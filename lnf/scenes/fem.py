@@ -85,6 +85,38 @@ class StructuredQ1Mesh:
         flat = fe.transpose(1, 3, 0, 2).reshape(-1, B * 2)  # (ne·4a, B·2k)
         return (self.assembly @ flat).reshape(self.n_nodes, B, 2).transpose(1, 0, 2)
 
+    def tangent_stiffness(self, u: np.ndarray, lam: float, mu: float, eps: float = 1e-6) -> sp.csr_matrix:
+        """K = −∂f/∂u (2 nn × 2 nn, sparse, symmetrised) of the internal force at one state u (nn, 2).
+
+        Central differences with a 3 × 3 colouring of the nodes: nodes three apart in both directions share
+        no element, so all of one colour and one component are perturbed together (18 pairs of force
+        evaluations in one batch, whatever the mesh size)."""
+        ii, jj = np.divmod(np.arange(self.n_nodes), self.ny + 1)
+        colour = (ii % 3) * 3 + jj % 3
+        batch = np.repeat(np.asarray(u, dtype=np.float64)[None], 36, 0)  # (9 colours × 2 components × ±)
+        for c in range(9):
+            for k in range(2):
+                batch[4 * c + 2 * k, colour == c, k] += eps
+                batch[4 * c + 2 * k + 1, colour == c, k] -= eps
+        df = -(self.internal_force(batch, lam, mu)[0::2] - self.internal_force(batch, lam, mu)[1::2]) / (2 * eps)
+        # each perturbed node's column: the responses at the nodes of its own elements (|Δi|, |Δj| ≤ 1)
+        rows, cols, vals = [], [], []
+        for di in (-1, 0, 1):
+            for dj in (-1, 0, 1):
+                src_i, src_j = ii - di, jj - dj  # the perturbed node whose neighbour is (ii, jj)
+                ok = (src_i >= 0) & (src_i <= self.nx) & (src_j >= 0) & (src_j <= self.ny)
+                tgt = np.flatnonzero(ok)
+                src = src_i[ok] * (self.ny + 1) + src_j[ok]
+                for k in range(2):
+                    response = df[2 * colour[src] + k, tgt]  # (m, 2): force on the target node
+                    for a in range(2):
+                        rows.append(2 * tgt + a)
+                        cols.append(2 * src + k)
+                        vals.append(response[:, a])
+        n = 2 * self.n_nodes
+        K = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(n, n))
+        return (0.5 * (K + K.T)).tocsr()
+
     def strain_energy(self, u: np.ndarray, lam: float, mu: float) -> np.ndarray:
         """Σ_g w W(F_g) (B,) for u (B, nn, 2)."""
         return self.gauss_weight * svk_energy_density(self.deformation_gradient(u), lam, mu).sum((1, 2))

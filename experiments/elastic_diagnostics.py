@@ -1,0 +1,137 @@
+"""Why an elastic reduced model works or fails: how low-dimensional the data is, and what the embedding gets wrong.
+
+    python experiments/elastic_diagnostics.py --content                  # both releases, 16 runs of the FEM model
+    python experiments/elastic_diagnostics.py --ckpt outputs/issue4/elastic/checkpoints/last.ckpt
+
+--content simulates 16 runs (5 s) of each release (``scene.release``: the Euler–Bernoulli "shape" and the
+"modal" one) and prints the share of the displacement and of the velocity (mass-weighted, from the reference
+configuration) that k POD modes leave, and that a cubic manifold over the first 1 or 2 POD coordinates
+leaves (for the velocity: outside its tangent space).
+
+--ckpt compares a trained model with the FEM on test trajectories of its own dataset: the pulled-back
+kinetic and potential energies T̃, Ṽ along the codes of the true snapshots against the FEM's T and V (a
+right Lagrangian gives the same changes), and the relative error of the velocity gradient ∇_X φ̇ = GJ q̃̇
+against the FEM's on the model's quadrature points, per column of points along X₁ (the clamp is X₁ = 0).
+Prints only; every number is measured in the run.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+
+def _mass_weighted(scene, x: np.ndarray) -> np.ndarray:
+    return x.reshape(-1, 2 * scene.n_nodes) * np.sqrt(np.repeat(scene.nodal_mass, 2))
+
+
+def _cubic_features(a: np.ndarray) -> np.ndarray:
+    k = a.shape[1]
+    cols = [np.ones((len(a), 1)), a]
+    cols += [(a[:, i] * a[:, j])[:, None] for i in range(k) for j in range(i, k)]
+    cols += [(a[:, i] * a[:, j] * a[:, m])[:, None] for i in range(k) for j in range(i, k) for m in range(j, k)]
+    return np.concatenate(cols, 1)
+
+
+def content(release: str, runs: int = 16, seed: int = 0, **scene: object) -> dict[str, object]:
+    """POD and cubic-manifold content of `runs` FEM runs of the cantilever (defaults, or `scene` settings)."""
+    from lnf.scenes.elastic import ElasticCantilever
+
+    scene = ElasticCantilever(release=release, **scene)
+    states = scene.simulate(scene.sample_initial_states(runs, np.random.default_rng(seed)), np.linspace(0, 5, 101))
+    u, v, _ = scene.unpack(states)
+    U, V = _mass_weighted(scene, u), _mass_weighted(scene, v)
+    out: dict[str, object] = {}
+    for name, X in (("displacement", U), ("velocity", V)):
+        s = np.linalg.svd(X, compute_uv=False)
+        out[f"{name}: share outside k POD modes (k = 1…6)"] = np.sqrt(np.maximum(1 - np.cumsum(s**2) / np.sum(s**2), 0))[:6]
+    _, _, Vt = np.linalg.svd(U, full_matrices=False)
+    for k in (1, 2):
+        a = U @ Vt[:k].T
+        feats = _cubic_features(a)
+        coef, *_ = np.linalg.lstsq(feats, U, rcond=None)
+        out[f"displacement outside a cubic {k}-D manifold"] = np.linalg.norm(U - feats @ coef) / np.linalg.norm(U)
+        eps, tangents = 1e-6, []
+        for m in range(k):
+            shifted = a.copy()
+            shifted[:, m] += eps
+            tangents.append((_cubic_features(shifted) - feats) @ coef / eps)
+        T = np.stack(tangents, -1)  # (n, D, k)
+        rest = sum(np.sum((V[i] - T[i] @ np.linalg.lstsq(T[i], V[i], rcond=None)[0]) ** 2) for i in range(len(V)))
+        out[f"velocity outside its tangent space ({k}-D)"] = np.sqrt(rest) / np.linalg.norm(V)
+    return out
+
+
+def checkpoint(path: Path, trajectory: int = 0) -> None:
+    import h5py
+    import torch
+
+    import lnf
+
+    model = lnf.load(path)
+    scene = model.scene
+    with h5py.File(ROOT / model.checkpoint["data"]["path"], "r") as f:
+        points = torch.as_tensor(f["grids/fine"][:])
+        fields = torch.as_tensor(f["test/fields"][trajectory])
+        velocities = torch.as_tensor(f["test/velocities"][trajectory])
+        states = f["test/states"][trajectory]
+        train_times = int(model.checkpoint["data"]["train_times"])
+    with torch.no_grad():
+        q = model.reduce(points, fields)
+        qdot = model.project_velocity(q, points, velocities)
+        T, V = (x.numpy() for x in model.dynamics().energies(q, qdot))
+    kinetic, potential = scene.true_energy_parts(states)
+    print(f"energies along the codes of test trajectory {trajectory} (every 3rd sample of the training horizon):")
+    print("   t [s]     T̃      T_FEM    Ṽ − Ṽ(0)  V_FEM − V_FEM(0)")
+    for i in range(0, train_times, 3):
+        print(f"  {0.05 * i:5.2f}  {T[i]:8.5f} {kinetic[i]:8.5f}  {V[i] - V[0]:8.5f}  {potential[i] - potential[0]:8.5f}")
+    # velocity gradients on the model's quadrature points
+    quad = model.quadrature_rule.build(scene.bounds)
+    qpts = quad.points.to(q)
+    jet = model.field.jet(q, qpts, order=1, spatial=True)
+    ours = torch.einsum("bnaki,bi->bnak", jet.GJ, qdot).detach().numpy()
+    _, v, _ = scene.unpack(states)
+    X, h = qpts.numpy().astype(np.float64), 1e-4
+
+    def interp(P: np.ndarray) -> np.ndarray:
+        return (scene.mesh.interpolation(P) @ v.transpose(1, 0, 2).reshape(scene.n_nodes, -1)).reshape(
+            len(P), -1, 2).transpose(1, 0, 2)
+
+    fem = np.stack([(interp(X + [h, 0]) - interp(X - [h, 0])) / (2 * h),
+                    (interp(X + [0, h]) - interp(X - [0, h])) / (2 * h)], -1)
+    err = np.linalg.norm((ours - fem).reshape(len(ours), len(X), -1), axis=(0, 2))
+    ref = np.linalg.norm(fem.reshape(len(ours), len(X), -1), axis=(0, 2))
+    print(f"velocity-gradient relative error: {np.linalg.norm(ours - fem) / np.linalg.norm(fem):.3f} overall; by X₁:")
+    cols = np.unique(X[:, 0].round(4))
+    print("  " + "  ".join(f"{x:.2f}: {np.sqrt((err[m]**2).sum() / (ref[m]**2).sum()):.2f}"
+                           for x in cols for m in [X[:, 0].round(4) == x]))
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--content", action="store_true", help="low-dimensionality of the two releases")
+    parser.add_argument("--runs", type=int, default=16)
+    parser.add_argument("--mesh", type=int, nargs=2, default=None, help="--content: FEM mesh (nx ny), default the scene's")
+    parser.add_argument("--ckpt", type=Path, default=None, help="a trained elastic checkpoint to diagnose")
+    args = parser.parse_args(argv)
+    if not args.content and args.ckpt is None:
+        parser.error("give --content and/or --ckpt")
+    if args.content:
+        for release in ("shape", "modal"):
+            print(f"release = {release!r} ({args.runs} runs, 5 s):")
+            extra = {"mesh": args.mesh} if args.mesh else {}
+            for key, value in content(release, args.runs, **extra).items():
+                print(f"  {key}: {np.round(value, 4)}")
+    if args.ckpt is not None:
+        if not args.ckpt.is_file():
+            raise SystemExit(f"no checkpoint at {args.ckpt}")
+        checkpoint(args.ckpt)
+
+
+if __name__ == "__main__":
+    main()
