@@ -19,6 +19,7 @@ from typing import Any, Optional
 import torch
 from torch import Tensor, nn
 
+from lnf.boundary import ClampedField
 from lnf.quadrature import Quadrature, QuadratureRule
 from lnf.reduced_model import ReducedModel, as_field
 from lnf.reduction import (best_start, project_velocity, projection_loss, pullback_mass_matrix, reconstruction_loss,
@@ -87,6 +88,10 @@ class LagrangianNeuralField(ReducedModel):
         step_size: initial α of the reduction (learned as log α).
         velocity_weight: λ_v of the optional tangent (velocity) reconstruction loss, not in the paper;
             0 gives the paper's loss ℓ^r + ℓ^p exactly (see :meth:`losses`).
+        energy_weight: λ_E of the optional potential-energy loss ℓ^E = huber((Ṽ(q̃) − V)/E_scale), Ṽ the pulled-back
+            potential at the snapshot's code and V the full-order one (not in the paper; see :meth:`losses`).
+        clamp: φ = s(X) ψ with the scene's clamp factor s (:class:`lnf.boundary.ClampedField`), so the field
+            meets a clamped boundary exactly; not in the paper (its scenes have none).
         quadrature: rule for the integrals of the reduced dynamics (default Gauss–Legendre 8×8).
         dynamics: None (the pulled-back Lagrangian, our model) or a ``_target_`` spec of learned latent
             dynamics, e.g. ``lnf.baselines.latent_mlp.LatentMLPDynamics`` (the black-box baseline; it is
@@ -110,6 +115,8 @@ class LagrangianNeuralField(ReducedModel):
         start_radius: float = 1.0,
         step_size: float = 0.1,
         velocity_weight: float = 0.1,
+        clamp: bool = False,
+        energy_weight: float = 0.0,
         quadrature: Optional[QuadratureRule] = None,
         dynamics: Optional[dict[str, Any]] = None,
     ) -> None:
@@ -121,9 +128,15 @@ class LagrangianNeuralField(ReducedModel):
         if not velocity_weight >= 0:
             raise ValueError(f"model.velocity_weight must be ≥ 0, got {velocity_weight!r}")
         self.velocity_weight = float(velocity_weight)
+        if not energy_weight >= 0:
+            raise ValueError(f"model.energy_weight must be ≥ 0, got {energy_weight!r}")
+        self.energy_weight = float(energy_weight)
         self.field = ModulatedSiren(latent_dim=latent_dim, in_dim=scene.body_dim, out_dim=scene.field_dim,
                                     width=width, depth=depth, w0=w0, hyper_width=hyper_width,
                                     hyper_depth=hyper_depth, hyper_init_scale=hyper_init_scale)
+        if clamp:  # φ = s(X) ψ: exactly zero on the scene's clamped boundary
+            scene.clamp_factor(torch.zeros(1, scene.body_dim))  # a clear error for scenes without a clamp
+            self.field = ClampedField(self.field, scene.clamp_factor)
         self.reduction_steps = int(reduction_steps)
         if int(reduction_starts) != reduction_starts or reduction_starts < 1:
             raise ValueError(f"model.reduction_starts must be an integer ≥ 1, got {reduction_starts!r}")
@@ -159,7 +172,8 @@ class LagrangianNeuralField(ReducedModel):
         return self.latent_dynamics.as_dynamics(self.lagrangian_dynamics(quadrature))
 
     # ------------------------------------------------------------------ training losses (DESIGN.md §2)
-    def losses(self, points: Tensor, values: Tensor, velocities: Optional[Tensor] = None) -> dict[str, Tensor]:
+    def losses(self, points: Tensor, values: Tensor, velocities: Optional[Tensor] = None,
+               potential: Optional[Tensor] = None, energy_factor: float = 1.0) -> dict[str, Tensor]:
         """Training losses of snapshots (B, N, A) observed at points (B, N, dim_B) (DESIGN.md §2).
 
         ``loss = ℓ^r + ℓ^p`` (+ λ_v ℓ^v when ``velocity_weight`` > 0 and `velocities` (B, N, A) are given),
@@ -167,6 +181,12 @@ class LagrangianNeuralField(ReducedModel):
         ω0-projection of the observed velocity onto the tangent space span J (the lifted reduction
         dρ = (dφ)^{†,ω0} of the paper's eq. 14). ℓ^v is the part of the observed velocity that the
         embedding's tangent space misses; ℓ^r and ℓ^p do not constrain it.
+
+        With ``energy_weight`` > 0 and the snapshots' full-order potential energies `potential` (B,), also
+        `energy_factor` · λ_E ℓ^E (the factor is a training schedule's), ℓ^E the Huber loss (δ = 0.1) of the
+        gap (Ṽ(q̃) − V)/E_scale, Ṽ the potential pulled back through φ on the model's
+        quadrature. Where V depends on ∇_X q (elasticity, eq. 11), values alone leave ∇_X φ loose, and its
+        error becomes stiffness in the reduced equations; ℓ^E ties the pulled-back energy to the true one.
         """
         density = self._density(points)
         K = self.reduction_steps
@@ -186,6 +206,12 @@ class LagrangianNeuralField(ReducedModel):
             vel = reconstruction_loss(tangent, velocities, density)
             total = total + self.velocity_weight * vel
             out["velocity"] = vel.mean()
+        if self.energy_weight > 0 and potential is not None:
+            reduced = self.lagrangian_dynamics().potential_energy(codes)
+            gap = (reduced - potential.to(reduced)) / self.scene.energy_scale
+            energy = torch.nn.functional.huber_loss(gap, torch.zeros_like(gap), reduction="none", delta=0.1)
+            total = total + energy_factor * self.energy_weight * energy
+            out["energy"] = energy.mean()
         out["loss"] = total.mean()
         out["codes"] = codes.detach()
         return out

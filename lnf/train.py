@@ -91,6 +91,7 @@ def train(cfg: DictConfig) -> dict[str, float]:
         model_spec["dynamics"] = dynamics_spec
     module = LNFModule(scene=scene_spec, model=model_spec, quadrature=_container(cfg.quadrature),
                        optimizer=_container(cfg.optimizer), data=datamodule.describe())
+    datamodule.potential_targets = getattr(module.model, "energy_weight", 0.0) > 0  # items carry V for ℓ^E
     evaluation = RolloutEvaluationCallback(integrator=_container(cfg.integrator), output_dir=str(output_dir),
                                            **_container(cfg.evaluation))
     callbacks = [hydra.utils.instantiate(c) for c in (cfg.get("callbacks") or {}).values() if c is not None]

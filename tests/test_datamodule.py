@@ -87,3 +87,14 @@ def test_damaged_snapshot_names_file_key_and_trajectory(tmp_path):
 def test_bad_settings(tmp_path):
     with pytest.raises(ValueError, match="data.num_workers"):
         SnapshotDataModule({"_target_": "lnf.scenes.LiftedPendulum"}, data_dir=str(tmp_path), num_workers=-1, **GEN)
+
+
+def test_potential_targets_are_the_full_order_potential_of_each_snapshot(data_dir):
+    dm = _module(data_dir)
+    dm.potential_targets = True
+    ds = dm.snapshots("train")
+    split = load_split(dm.path, "train")
+    *_, potential = ds[2 * 6 + 3]
+    _, expected = dm.scene.true_energy_parts(split.states[2, 3])
+    assert potential.shape == () and potential.item() == pytest.approx(float(expected), rel=1e-6)
+    assert len(_module(data_dir).snapshots("train")[0]) == 3  # off by default: (points, values, velocities)

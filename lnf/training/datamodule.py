@@ -38,7 +38,9 @@ class SnapshotDataset(Dataset):
     on first use and reads one snapshot per item, so memory does not grow with the dataset. With
     ``in_memory`` the split's coarse values and velocities over the first `n_times` samples are read once.
 
-    Item: points (Nobs, dim_B), values (Nobs, A), velocities (Nobs, A), float32. With ``noise`` > 0, item
+    Item: points (Nobs, dim_B), values (Nobs, A), velocities (Nobs, A), float32, and with `scene` given the
+    full-order potential energy V of the snapshot (a 0-d float32 tensor, from the stored states through
+    ``scene.true_energy_parts``: the target of the optional energy loss). With ``noise`` > 0, item
     (i, k) gets Gaussian noise of std noise·RMS (RMS of the split's observed values, resp. velocities) drawn
     from a generator seeded by (seed, i, k): the same noise in both modes, in any worker, after a restart.
     """
@@ -46,7 +48,7 @@ class SnapshotDataset(Dataset):
     KEYS = ("coarse_fields", "coarse_velocities")
 
     def __init__(self, path: str | Path, split: str, n_times: int, noise: float = 0.0, seed: int = 0,
-                 in_memory: bool = False) -> None:
+                 in_memory: bool = False, scene: Optional[Scene] = None) -> None:
         self.path, self.split, self.n_times = Path(path), split, int(n_times)
         self.noise, self.seed = float(noise), int(seed)
         with h5py.File(self.path, "r") as f:
@@ -55,6 +57,9 @@ class SnapshotDataset(Dataset):
             self.points = torch.as_tensor(f["grids/coarse"][...][self.index], dtype=torch.float32)
             self._arrays = {key: _read_leading(f[f"{split}/{key}"], self.n_times) for key in self.KEYS} \
                 if in_memory else None
+            self.potential = None if scene is None else torch.as_tensor(np.stack([  # (n, n_times), one trajectory at a time
+                scene.true_energy_parts(f[f"{split}/states"][i, :self.n_times])[1] for i in range(self.index.shape[0])
+            ]), dtype=torch.float32)
         self._file: Optional[h5py.File] = None
         self._pid: Optional[int] = None
         self.noise_std = (self.noise * self._observed_rms(self.KEYS[0]), self.noise * self._observed_rms(self.KEYS[1])) \
@@ -96,11 +101,12 @@ class SnapshotDataset(Dataset):
         values = values + (self.noise_std[0] * rng.standard_normal(values.shape)).astype(np.float32)
         return values, velocities + (self.noise_std[1] * rng.standard_normal(velocities.shape)).astype(np.float32)
 
-    def __getitem__(self, index: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def __getitem__(self, index: int) -> tuple[torch.Tensor, ...]:
         i, k = divmod(int(index), self.n_times)
         values, velocities = self._noisy(i, k, self._read(self.KEYS[0], i, k), self._read(self.KEYS[1], i, k))
-        return self.points[i], torch.from_numpy(np.ascontiguousarray(values)), \
-            torch.from_numpy(np.ascontiguousarray(velocities))
+        item = (self.points[i], torch.from_numpy(np.ascontiguousarray(values)),
+                torch.from_numpy(np.ascontiguousarray(velocities)))
+        return item if self.potential is None else (*item, self.potential[i, k])
 
     def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """All items stacked: points (n, Nobs, dim_B), values and velocities (n, n_times, Nobs, A)."""
@@ -139,7 +145,9 @@ class SnapshotDataModule(pl.LightningDataModule):
     ('regenerate' | 'error'), batch_size (the global batch, shared among DDP processes), num_workers,
     noise (std of Gaussian noise added to the observed training values and velocities, relative to their
     RMS over the split; seeded by `seed`), in_memory (read the observations once instead of streaming them
-    from the file), shuffle_seed (seed of the per-epoch batch order), and the :class:`DatasetConfig` fields."""
+    from the file), shuffle_seed (seed of the per-epoch batch order), and the :class:`DatasetConfig` fields.
+    Set ``potential_targets`` (``lnf.train`` does when the model has an energy loss) before the first batch
+    for items that also carry each snapshot's full-order potential energy."""
 
     def __init__(self, scene: "Scene | dict", data_dir: str = "data", path: Optional[str] = None,
                  on_mismatch: str = "regenerate", batch_size: int = 32, num_workers: int = 0,
@@ -159,6 +167,7 @@ class SnapshotDataModule(pl.LightningDataModule):
         self.noise, self.in_memory, self.shuffle_seed = float(noise), bool(in_memory), int(shuffle_seed)
         self._splits: dict[str, TrajectorySplit] = {}
         self._snapshots: dict[str, SnapshotDataset] = {}
+        self.potential_targets = False
 
     def prepare_data(self) -> None:
         ensure_dataset(self.scene, self.config, self.path, on_mismatch=self.on_mismatch)
@@ -179,7 +188,8 @@ class SnapshotDataModule(pl.LightningDataModule):
             return self._snapshots[split]
         noise = self.noise if split == "train" else 0.0
         self._snapshots[split] = SnapshotDataset(self.path, split, self.config.train_times, noise=noise,
-                                                 seed=self.config.seed + 7919, in_memory=self.in_memory)
+                                                 seed=self.config.seed + 7919, in_memory=self.in_memory,
+                                                 scene=self.scene if self.potential_targets else None)
         return self._snapshots[split]
 
     def observations(self, split: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -21,7 +21,8 @@ class LNFModule(pl.LightningModule):
         scene, model, quadrature: ``_target_`` specs of the scene, the LagrangianNeuralField (its other
             arguments) and the quadrature rule of the reduced dynamics.
         optimizer: ``lr`` (field), ``step_size_lr`` (log α), ``weight_decay``, ``warmup_steps``,
-            ``schedule`` ('cosine' or 'constant'), ``min_lr_ratio``.
+            ``schedule`` ('cosine' or 'constant'), ``min_lr_ratio``, ``energy_warmup_epochs`` (see
+            :meth:`energy_factor`).
         data: the data settings the model was trained on (kept for re-evaluation).
     """
 
@@ -31,21 +32,33 @@ class LNFModule(pl.LightningModule):
         self.save_hyperparameters()
         self.model = build_model(scene, model, quadrature)
         self.optimizer_cfg = {"lr": 3e-4, "step_size_lr": 1e-2, "weight_decay": 0.0, "warmup_steps": 0,
-                              "schedule": "cosine", "min_lr_ratio": 0.0, **(optimizer or {})}
+                              "schedule": "cosine", "min_lr_ratio": 0.0, "energy_warmup_epochs": 0,
+                              **(optimizer or {})}
 
     def _step(self, batch: tuple[Tensor, ...], stage: str) -> Tensor:
-        points, values, velocities = batch
-        out = self.model.losses(points, values, velocities)
+        points, values, velocities, *potential = batch  # the snapshots' potential energy, for an energy loss
+        out = self.model.losses(points, values, velocities, *potential, energy_factor=self.energy_factor())
         bs = points.shape[0]
         # epoch values are averaged over DDP ranks (each holds part of the global batch)
         log = functools.partial(self.log, batch_size=bs, on_step=stage == "train", on_epoch=True, sync_dist=True)
         log(f"{stage}/loss", out["loss"], prog_bar=True)
-        for key in ("reconstruction", "projection", "velocity"):
+        for key in ("reconstruction", "projection", "velocity", "energy"):
             if key in out:
                 log(f"{stage}/{key}", out[key])
         if stage == "train":
             self.log("train/step_size", self.model.step_size.detach(), batch_size=bs, on_step=True, on_epoch=False)
         return out["loss"]
+
+    def energy_factor(self) -> float:
+        """Schedule of the energy loss: off for the first w = ``energy_warmup_epochs`` epochs (the field first
+        learns the values), then ramped linearly to 1 over the next w."""
+        return self._energy_factor_at(self.current_epoch)
+
+    def _energy_factor_at(self, epoch: int) -> float:
+        w = int(self.optimizer_cfg["energy_warmup_epochs"])
+        if w <= 0:
+            return 1.0
+        return float(min(max((epoch - w + 1) / w, 0.0), 1.0))
 
     def training_step(self, batch: tuple[Tensor, ...], batch_idx: int) -> Tensor:
         loss = self._step(batch, "train")

@@ -1,0 +1,48 @@
+"""The optional potential-energy loss ℓ^E = huber((Ṽ(q̃) − V)/E_scale) of LagrangianNeuralField.losses."""
+import pytest
+import torch
+
+from lnf.model import LagrangianNeuralField
+from lnf.quadrature import GaussLegendre
+from lnf.scenes.elastic import ElasticCantilever
+
+
+@pytest.fixture
+def model():
+    torch.manual_seed(0)
+    scene = ElasticCantilever(mesh=(4, 2))
+    return LagrangianNeuralField(scene, latent_dim=1, width=16, hyper_width=8, w0=3.0, energy_weight=0.5,
+                                 clamp=True, quadrature=GaussLegendre([4, 3]))
+
+
+def test_energy_loss_is_the_scaled_squared_potential_gap_and_trains_the_field(model):
+    points = torch.rand(2, 20, 2) * torch.tensor([1.0, 0.4])
+    values = 0.01 * torch.randn(2, 20, 2)
+    target = torch.tensor([0.003, -0.002])
+    out = model.losses(points, values, potential=target)
+    codes = out["codes"]
+    reduced = model.lagrangian_dynamics().potential_energy(codes)
+    gap = (reduced - target) / model.scene.energy_scale
+    expected = torch.where(gap.abs() < 0.1, 0.5 * gap**2, 0.1 * (gap.abs() - 0.05)).mean()
+    torch.testing.assert_close(out["energy"], expected)
+    without = model.losses(points, values)
+    assert "energy" not in without
+    torch.testing.assert_close(out["loss"], without["loss"] + 0.5 * expected)
+    out["loss"].backward()
+    assert all(p.grad is not None for p in model.field.parameters())
+
+
+def test_negative_energy_weight_is_named():
+    with pytest.raises(ValueError, match="model.energy_weight"):
+        LagrangianNeuralField(ElasticCantilever(mesh=(4, 2)), width=8, hyper_width=8, energy_weight=-1.0)
+
+
+def test_energy_warmup_switches_the_loss_on_then_ramps_it():
+    from lnf.training.module import LNFModule
+
+    module = LNFModule(scene={"_target_": "lnf.scenes.ElasticCantilever", "mesh": [4, 2]},
+                       model={"width": 8, "hyper_width": 8, "energy_weight": 0.1},
+                       quadrature={"_target_": "lnf.quadrature.GaussLegendre", "order": [4, 3]},
+                       optimizer={"energy_warmup_epochs": 4})
+    factors = [module._energy_factor_at(epoch) for epoch in range(10)]
+    assert factors == [0.0, 0.0, 0.0, 0.0, 0.25, 0.5, 0.75, 1.0, 1.0, 1.0]
