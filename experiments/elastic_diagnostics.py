@@ -95,15 +95,13 @@ def checkpoint(path: Path, trajectory: int = 0) -> None:
     qpts = quad.points.to(q)
     jet = model.field.jet(q, qpts, order=1, spatial=True)
     ours = torch.einsum("bnaki,bi->bnak", jet.GJ, qdot).detach().numpy()
-    _, v, _ = scene.unpack(states)
     X, h = qpts.numpy().astype(np.float64), 1e-4
 
-    def interp(P: np.ndarray) -> np.ndarray:
-        return (scene.mesh.interpolation(P) @ v.transpose(1, 0, 2).reshape(scene.n_nodes, -1)).reshape(
-            len(P), -1, 2).transpose(1, 0, 2)
+    def velocity(P: np.ndarray) -> np.ndarray:  # the FEM's velocity field at points P, (T, N, 2)
+        return scene.fields(states, P)[1]
 
-    fem = np.stack([(interp(X + [h, 0]) - interp(X - [h, 0])) / (2 * h),
-                    (interp(X + [0, h]) - interp(X - [0, h])) / (2 * h)], -1)
+    fem = np.stack([(velocity(X + [h, 0]) - velocity(X - [h, 0])) / (2 * h),
+                    (velocity(X + [0, h]) - velocity(X - [0, h])) / (2 * h)], -1)
     err = np.linalg.norm((ours - fem).reshape(len(ours), len(X), -1), axis=(0, 2))
     ref = np.linalg.norm(fem.reshape(len(ours), len(X), -1), axis=(0, 2))
     print(f"velocity-gradient relative error: {np.linalg.norm(ours - fem) / np.linalg.norm(fem):.3f} overall; by X₁:")

@@ -44,5 +44,5 @@ def test_energy_warmup_switches_the_loss_on_then_ramps_it():
                        model={"width": 8, "hyper_width": 8, "energy_weight": 0.1},
                        quadrature={"_target_": "lnf.quadrature.GaussLegendre", "order": [4, 3]},
                        optimizer={"energy_warmup_epochs": 4})
-    factors = [module._energy_factor_at(epoch) for epoch in range(10)]
+    factors = [module.energy_factor(epoch) for epoch in range(10)]
     assert factors == [0.0, 0.0, 0.0, 0.0, 0.25, 0.5, 0.75, 1.0, 1.0, 1.0]

@@ -100,7 +100,7 @@ class ElasticCantilever(Scene):
         mesh: (nx, ny) Q1 elements of the full-order model.
         time_step: full-order Verlet step [s]; null = `cfl_fraction` × the CFL estimate.
         deflection_range, tip_speed_range: initial tip deflection δ [m] and tip speed [m/s] of the release.
-        release: "shape" (Euler–Bernoulli shape) or "modal" (the FEM's equilibrium under a tip load), see above.
+        release: "shape" (Euler–Bernoulli shape) or "modal" (the FEM's equilibrium under a modal load), see above.
         damping: α [1/s] of the mass-proportional Rayleigh damping −α ρ u̇.
         load_amplitude_range, load_frequency_range: actuation A [N/m²] and f [Hz] per trajectory.
     """
@@ -148,7 +148,7 @@ class ElasticCantilever(Scene):
         self.nodal_mass = self.rho * self.mesh.nodal_area  # (nn,)
         self._free = np.flatnonzero(np.repeat(~self.mesh.clamped, 2))  # unclamped nodal dofs of u.reshape(-1)
         self._tip = np.flatnonzero(self.mesh.nodes[:, 0] == self.length)
-        self._modal: Optional[tuple[np.ndarray, np.ndarray]] = None  # (u_g, first mode)
+        self._modal: Optional[tuple[np.ndarray, np.ndarray, sp.csr_matrix]] = None  # (u_g, first mode, K_t at u_g)
         self._energy_scale: Optional[float] = None  # computed on first use (the modal one needs Newton solves)
 
     @property
@@ -159,9 +159,9 @@ class ElasticCantilever(Scene):
         if self._energy_scale is None:
             delta = max(abs(v) for v in self.deflection_range)
             if self.release == "modal":
-                u_g, mode = self._modal_reference()
+                _, mode, K = self._modal_reference()
                 flat = mode.reshape(-1)
-                stiffness = float(flat @ (self.mesh.tangent_stiffness(u_g, self.lam, self.mu) @ flat))
+                stiffness = float(flat @ (K @ flat))
                 speed = max(abs(v) for v in self.tip_speed_range)
                 mass = float(np.repeat(self.nodal_mass, 2) @ flat**2)
                 scale = 0.5 * delta**2 * stiffness + 0.5 * speed**2 * mass
@@ -235,32 +235,32 @@ class ElasticCantilever(Scene):
         raise RuntimeError(f"elastic static equilibrium (load {np.abs(load).sum():.4g} N/m) did not converge in "
                            f"{max_iter} Newton steps; reduce scene.deflection_range")
 
-    def _modal_reference(self) -> tuple[np.ndarray, np.ndarray]:
-        """(equilibrium under gravity u_g, first bending mode about it scaled to a unit tip deflection), (nn, 2) each."""
+    def _modal_reference(self) -> tuple[np.ndarray, np.ndarray, sp.csr_matrix]:
+        """(equilibrium under gravity u_g, first bending mode about it scaled to a unit tip deflection), (nn, 2)
+        each, and the tangent stiffness K_t there (2 nn × 2 nn), computed once."""
         if self._modal is None:
             u_g = self.static_equilibrium()
             free = self._free
-            K = self.mesh.tangent_stiffness(u_g, self.lam, self.mu)[free][:, free]
+            K_g = self.mesh.tangent_stiffness(u_g, self.lam, self.mu)
             mass = np.repeat(self.nodal_mass, 2)[free]
-            _, vectors = spla.eigsh(K.tocsc(), k=1, M=sp.diags(mass).tocsc(), sigma=0, which="LM")
+            _, vectors = spla.eigsh(K_g[free][:, free].tocsc(), k=1, M=sp.diags(mass).tocsc(), sigma=0, which="LM")
             mode = np.zeros(2 * self.n_nodes)
             mode[free] = vectors[:, 0]
             mode = mode.reshape(self.n_nodes, 2)
-            self._modal = (u_g, mode / float(mode[self._tip, 1].mean()))
+            self._modal = (u_g, mode / float(mode[self._tip, 1].mean()), K_g)
         return self._modal
 
     def modal_release(self, tip: np.ndarray) -> np.ndarray:
         """Equilibria (n, nn, 2) under gravity and the modal load K_t δ φ₁ (the inertial load of the first mode
         at a turning point, whose linear response is δ φ₁), for tip deflections δ = `tip` (n,)."""
-        u_g, mode = self._modal_reference()
-        K = self.mesh.tangent_stiffness(u_g, self.lam, self.mu)
+        u_g, mode, K = self._modal_reference()
         unit_load = -(K @ mode.reshape(-1)).reshape(self.n_nodes, 2)  # K_t φ₁ = ω₁² M φ₁ (a force on the body)
         return np.stack([self.static_equilibrium(-float(t) * unit_load, start=u_g) for t in np.asarray(tip).reshape(-1)])
 
     def release_velocity(self, speed: np.ndarray) -> np.ndarray:
         """Initial nodal velocities (n, nn, 2) with tip speeds `speed` (n,), in the release's shape."""
         if self.release == "modal":
-            _, mode = self._modal_reference()
+            _, mode, _ = self._modal_reference()
             return np.asarray(speed, dtype=np.float64)[:, None, None] * mode[None]
         return self.beam_shape(speed)
 

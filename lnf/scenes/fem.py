@@ -98,7 +98,8 @@ class StructuredQ1Mesh:
             for k in range(2):
                 batch[4 * c + 2 * k, colour == c, k] += eps
                 batch[4 * c + 2 * k + 1, colour == c, k] -= eps
-        df = -(self.internal_force(batch, lam, mu)[0::2] - self.internal_force(batch, lam, mu)[1::2]) / (2 * eps)
+        force = self.internal_force(batch, lam, mu)
+        df = -(force[0::2] - force[1::2]) / (2 * eps)
         # each perturbed node's column: the responses at the nodes of its own elements (|Δi|, |Δj| ≤ 1)
         rows, cols, vals = [], [], []
         for di in (-1, 0, 1):

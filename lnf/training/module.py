@@ -49,12 +49,11 @@ class LNFModule(pl.LightningModule):
             self.log("train/step_size", self.model.step_size.detach(), batch_size=bs, on_step=True, on_epoch=False)
         return out["loss"]
 
-    def energy_factor(self) -> float:
-        """Schedule of the energy loss: off for the first w = ``energy_warmup_epochs`` epochs (the field first
-        learns the values), then ramped linearly to 1 over the next w."""
-        return self._energy_factor_at(self.current_epoch)
-
-    def _energy_factor_at(self, epoch: int) -> float:
+    def energy_factor(self, epoch: Optional[int] = None) -> float:
+        """Schedule of the energy loss at `epoch` (default the current one): off for the first
+        w = ``energy_warmup_epochs`` epochs (the field first learns the values), then ramped linearly to 1
+        over the next w."""
+        epoch = self.current_epoch if epoch is None else epoch
         w = int(self.optimizer_cfg["energy_warmup_epochs"])
         if w <= 0:
             return 1.0
