@@ -6,11 +6,13 @@
 
 Hydra multiruns of `python -m lnf.train` (each method across its own size knob: our width, depth, K
 and latent dimension; the black box's field width; POD's number of modes k = 1…8; the full-order grid)
-and of `python -m lnf.evaluate` on our reference model (Gauss–Legendre 4²…32² against uniform 16²…64²
-quadrature inside the reduced dynamics; integrator and time step). Writes ``pareto.csv``,
-``pareto.png`` (test extrapolation `field_rel_l2` against the wall-clock of producing one trajectory's
-fields — rollout plus decoding on the 64×64 test grid — and against training wall-clock; Pareto front
-marked), ``quadrature.png`` and ``summary.md`` into outputs/studies/pareto/.
+and of `python -m lnf.evaluate`: on our reference model, Gauss–Legendre 4²…32² against uniform 16²…64²
+quadrature inside the reduced dynamics, integrator and time step; on each width of ours, the tabulated
+pullback (``dynamics=tabulated``, RK4 at dt = 0.05 and 0.1, midpoint-4 at 0.05); on each black box, RK4
+at dt = 0.1 as well as its trained 0.05. Writes ``pareto.csv``, ``pareto.png`` (test extrapolation
+`field_rel_l2` against the latent rollout's wall-clock per trajectory, against rollout plus decoding on
+the 64×64 test grid, and against training wall-clock; Pareto fronts marked), ``quadrature.png`` and
+``summary.md`` into outputs/studies/pareto/.
 """
 from __future__ import annotations
 
@@ -94,6 +96,36 @@ def evaluation_sweeps(study: S.Study, ckpt: Path, prefix: str, label: dict) -> N
                        {**label, "knob": "integrator"})
 
 
+def checkpoints(study: S.Study, sweep: str) -> list[tuple[int, Path]]:
+    """(width, last.ckpt) of each run of a training sweep of this study."""
+    return [(int(r["model.width"]), S.ROOT / r["dir"] / "checkpoints" / "last.ckpt")
+            for r in study.rows if r["sweep"] == sweep and "model.width" in r]
+
+
+def tabulated_sweeps(study: S.Study) -> None:
+    """Our width sweep rolled out with the tabulated pullback (``dynamics=tabulated``: M̃ and Ṽ as Chebyshev
+    interpolants on the training codes' range, built once per model) and the black box at the same time steps.
+
+    Both run RK4 at dt = 0.05 (the data's spacing, the black box's training step) and 0.1, so the two are
+    compared at equal integrator and step; ours also with the 4th-order midpoint rule at 0.05."""
+    smoke = study.mode == "smoke"
+    common = ["figures=0", f"threads={study.threads}"]
+    dts = "0.05" if smoke else "0.05,0.1"
+    for width, ckpt in checkpoints(study, "lnf_width"):
+        label = {"method": "lnf", "knob": "tabulated", "model.width": width, "dynamics": "tabulated"}
+        study.multirun(f"tabulated_rk4_w{width}", [*common, f"ckpt_path={ckpt}", "dynamics=tabulated",
+                                                     "integrator=rk4", f"dt={dts}"], "lnf.evaluate", label)
+        if not smoke:
+            study.multirun(f"tabulated_midpoint_w{width}", [*common, f"ckpt_path={ckpt}", "dynamics=tabulated",
+                                                              "integrator=implicit_midpoint", "integrator.order=4"],
+                           "lnf.evaluate", label)
+    if smoke:
+        return
+    for width, ckpt in checkpoints(study, "latent_mlp_width"):  # its training run is RK4 at dt = 0.05
+        study.multirun(f"latent_mlp_dt_w{width}", [*common, f"ckpt_path={ckpt}", "integrator=rk4", "dt=0.1"],
+                       "lnf.evaluate", {"method": "latent_mlp", "knob": "dt", "model.width": width})
+
+
 def n_quadrature_points(row: dict) -> float:
     if row.get("quadrature") == "uniform":
         return float(row["quadrature.resolution"]) ** 2
@@ -112,6 +144,16 @@ def smallest_quadrature(rows: list[dict]) -> dict:
     return {}
 
 
+ROLLOUT = "rollout_seconds_per_trajectory"
+VARIANT_KNOBS = ("quadrature", "integrator", "dt")  # re-evaluations of a trained model: hollow markers
+
+
+def cost_panels() -> list[tuple[str, str]]:
+    return [(ROLLOUT, "latent rollout wall-clock per trajectory [s] (5 s horizon, 16 at once)"),
+            (COST, "rollout + decoding per trajectory [s] (64×64 grid, all sample times)"),
+            ("train_seconds", "training wall-clock [s] (incl. closed-form fits)")]
+
+
 def plot(study: S.Study, rows: list[dict]) -> list[Path]:
     import matplotlib
 
@@ -119,9 +161,8 @@ def plot(study: S.Study, rows: list[dict]) -> list[Path]:
     import matplotlib.pyplot as plt
 
     train_rows = [r for r in rows if "train_seconds" in r and r["sweep"].split("_")[0] in ("lnf", "latent", "pod", "full")]
-    fig, axes = plt.subplots(1, 2, figsize=(13, 5))
-    for ax, xkey, xlabel in [(axes[0], COST, "rollout + decoding wall-clock per trajectory [s] (64×64 grid, all sample times)"),
-                             (axes[1], "train_seconds", "training wall-clock [s] (incl. closed-form fits)")]:
+    fig, axes = plt.subplots(1, 3, figsize=(19, 5.5))
+    for ax, (xkey, xlabel) in zip(axes, cost_panels()):
         pts = train_rows if xkey == "train_seconds" else [r for r in rows if not r["sweep"].startswith("ref_")]
         x = np.array([float(r.get(xkey, np.nan)) for r in pts])
         y = np.array([float(r.get(ERR, np.nan)) for r in pts])
@@ -129,28 +170,34 @@ def plot(study: S.Study, rows: list[dict]) -> list[Path]:
             sel = [i for i, r in enumerate(pts) if S.method_of(r) == m]
             if not sel:
                 continue
-            variants = [i for i in sel if pts[i].get("knob") in ("quadrature", "integrator")]
-            core = [i for i in sel if i not in variants]
+            tabulated = [i for i in sel if pts[i].get("knob") == "tabulated"]
+            variants = [i for i in sel if pts[i].get("knob") in VARIANT_KNOBS]
+            core = [i for i in sel if i not in variants and i not in tabulated]
             ax.scatter(x[core], y[core], c=S.COLORS[m], marker=S.MARKERS[m], s=50, label=S.LABELS[m], zorder=3)
             if variants:
                 ax.scatter(x[variants], y[variants], facecolors="none", edgecolors=S.COLORS[m], marker=S.MARKERS[m],
                            s=40, label=f"{S.LABELS[m]}: quadrature / integrator / dt variants", zorder=3)
-            for i in core:
+            if tabulated:
+                ax.scatter(x[tabulated], y[tabulated], c=S.COLORS[m], marker="*", s=90, zorder=4,
+                           label=f"{S.LABELS[m]}, tabulated M̃, Ṽ (dynamics=tabulated)")
+            for i in core + tabulated:
                 knob = pts[i].get("knob")
                 key = {"width": "model.width", "depth": "model.depth", "K": "model.reduction_steps",
-                       "d": "model.latent_dim", "k": "model.latent_dim", "resolution": "model.resolution"}.get(knob)
+                       "d": "model.latent_dim", "k": "model.latent_dim", "resolution": "model.resolution",
+                       "tabulated": "model.width"}.get(knob)
                 if key and key in pts[i]:
-                    ax.annotate(f"{knob}={pts[i][key]}", (x[i], y[i]), fontsize=7, xytext=(3, 3),
-                                textcoords="offset points")
+                    text = f"{knob}={pts[i][key]}" if knob != "tabulated" else (
+                        f"w={pts[i][key]} {pts[i].get('integrator', 'midpoint')} {pts[i].get('dt') or ''}")
+                    ax.annotate(text, (x[i], y[i]), fontsize=6, xytext=(3, 3), textcoords="offset points")
         front = S.pareto_mask(x, y)
         order = np.argsort(x[front])
         ax.step(x[front][order], y[front][order], where="post", color="k", lw=1, ls="--", label="Pareto front", zorder=2)
         ax.set_xscale("log")
         ax.set_yscale("log")
-        ax.set_xlabel(xlabel)
+        ax.set_xlabel(xlabel, fontsize=8)
         ax.set_ylabel("test field_rel_l2, extrapolation (t ≥ 2.5 s), median")
         ax.grid(True, which="both", alpha=0.3)
-    axes[0].legend(fontsize=7, loc="best")
+    axes[0].legend(fontsize=6, loc="best")
     fig.suptitle(f"Accuracy vs cost, {study.scene} — {S.caption(study, 'python experiments/pareto.py')}", fontsize=9)
     out = [S.save_figure(fig, study.out / "pareto.png")]
 
@@ -171,12 +218,18 @@ def plot(study: S.Study, rows: list[dict]) -> list[Path]:
 
 
 def summary(study: S.Study, rows: list[dict]) -> Path:
-    core = [r for r in rows if r.get("knob") not in ("quadrature", "integrator")]
+    core = [r for r in rows if r.get("knob") not in (*VARIANT_KNOBS, "tabulated")]
     lnf = [r for r in rows if S.method_of(r) == "lnf" and not r["sweep"].startswith("ref_")]
     bb = [r for r in rows if S.method_of(r) == "latent_mlp"]
-    lc = np.array([float(r[COST]) for r in lnf])
-    le = np.array([float(r[ERR]) for r in lnf])
-    dominated = [S.dominates(lc, le, float(r[COST]), float(r[ERR])) for r in bb]
+
+    def dominance(key: str, ours: list[dict]) -> str:
+        lc = np.array([float(r.get(key, np.nan)) for r in ours])
+        le = np.array([float(r.get(ERR, np.nan)) for r in ours])
+        flags = [S.dominates(lc, le, float(r[key]), float(r[ERR])) for r in bb]
+        missed = [f"width {r.get('model.width')} dt {r.get('dt') or 0.05}" for r, f in zip(bb, flags) if not f]
+        return f"{sum(flags)}/{len(flags)}" + (f" (not: {', '.join(missed)})" if missed else "")
+
+    exact = [r for r in lnf if r.get("knob") != "tabulated"]
     fom = [r for r in rows if S.method_of(r) == "full_order" and int(r.get("model.resolution", 0)) == 64]
     ref = [r for r in lnf if r.get("knob") == "width" and int(r.get("model.width", 0)) ==
            {"smoke": 16, "reduced": 64, "full": 256}[study.mode]]
@@ -186,8 +239,11 @@ def summary(study: S.Study, rows: list[dict]) -> Path:
              " per trajectory, 16 rolled out at once (runs with a larger dt decode fewer frames: their decoding is scaled"
              " to the same frame count);"
              f" error = test `{ERR}`.\n",
-             f"\nBlack-box points dominated by one of our points (cost ≤ and extrapolation error ≤): "
-             f"{sum(dominated)}/{len(dominated)}.\n"]
+             "\nBlack-box points dominated by one of our points (cost ≤ and extrapolation error ≤):\n",
+             f"- on latent rollout cost (`{ROLLOUT}`): {dominance(ROLLOUT, lnf)} with every point of ours; "
+             f"{dominance(ROLLOUT, exact)} without the tabulated ones;\n",
+             f"- on rollout + decoding cost (`{COST}`): {dominance(COST, lnf)} with every point of ours; "
+             f"{dominance(COST, exact)} without the tabulated ones.\n"]
     if fom and ref:
         lines.append(f"\nFull-order model on the 64×64 grid: {S.fmt(fom[0][COST])} s per trajectory (rollout "
                      f"{S.fmt(fom[0]['rollout_seconds_per_trajectory'])} s); our reference model: "
@@ -206,6 +262,8 @@ def summary(study: S.Study, rows: list[dict]) -> Path:
             ("model.resolution", "grid"), ("quadrature.order", "GL order"), ("quadrature.resolution", "uniform res"),
             ("integrator", "integrator"), ("integrator.order", "order"), ("dt", "dt"),
             ("field_rel_l2/in_horizon/median", "err in-horizon"), (ERR, "err extrapolation"),
+            ("dynamics", "dynamics"), ("table_nodes", "table nodes"), ("table_seconds", "table build s"),
+            ("table_fallback_fraction", "off-table share"),
             ("energy_drift/max", "energy drift"), ("rollout_seconds_per_trajectory", "rollout s/traj"),
             (COST, "rollout+decode s/traj"), ("train_seconds", "train s")]
     lines.append("\n" + S.markdown_table(core + [r for r in rows if r not in core], cols))
@@ -219,6 +277,7 @@ def main(argv=None) -> None:
 
     study, args = S.parse_args("pareto", __doc__, argv, extra)
     sweeps(study)
+    tabulated_sweeps(study)
     label = {"method": "lnf"}
     evaluation_sweeps(study, reference_checkpoint(study), "", label)
     if args.quadrature_ckpt:

@@ -47,6 +47,41 @@ def evaluation_points(grid: DictConfig, bounds: list[list[float]], stored: np.nd
     raise ValueError(f"grid.kind must be 'stored', 'uniform' or 'random', got {kind!r}")
 
 
+def choose_dynamics(model: Any, spec: Any, ckpt_path: Any) -> None:
+    """Apply ``dynamics=tabulated`` / ``dynamics=lagrangian`` to a loaded model (None keeps the checkpoint's)."""
+    if not spec:
+        return
+    target = str(spec.get("_target_", ""))  # read before resolving: a learned dynamics' spec names training keys
+    if target.endswith(("TabulatedDynamics", "ReducedDynamics")):
+        spec = OmegaConf.to_container(spec, resolve=True) if OmegaConf.is_config(spec) else dict(spec)
+    if not hasattr(model, "set_tabulation") or getattr(model, "latent_dynamics", None) is not None:
+        raise ValueError(f"dynamics={target.rpartition('.')[2] or spec} applies to our model's pulled-back Lagrangian; "
+                         f"the checkpoint {ckpt_path} holds a {type(model).__name__} with its own dynamics")
+    if target.endswith("TabulatedDynamics"):
+        model.set_tabulation(spec)
+    elif target.endswith("ReducedDynamics"):
+        model.set_tabulation(None)
+    else:
+        raise ValueError(f"dynamics: lnf.evaluate can switch between lnf.dynamics.ReducedDynamics and "
+                         f"lnf.tabulated.TabulatedDynamics, got _target_={target!r} (learned dynamics are trained)")
+
+
+@torch.no_grad()
+def ensure_code_range(model: Any, path: Path, scene: Any, dcfg: DatasetConfig) -> None:
+    """A tabulated dynamics needs the training codes' range; a checkpoint written before lnf recorded it gets
+    it here from the training split (its training samples, reduced on the coarse grid)."""
+    if getattr(model, "tabulation", None) is None or bool(torch.isfinite(model.code_low).all()):
+        return
+    train = load_split(path, "train", scene=scene, cfg=dcfg)
+    p = model.reference_tensor()
+    points = torch.as_tensor(train.coarse_points, dtype=p.dtype)
+    fields = torch.as_tensor(train.coarse_fields[:, : train.train_times], dtype=p.dtype).flatten(0, 1)
+    codes = torch.cat([model.reduce(points, fields[i:i + 256]) for i in range(0, len(fields), 256)])
+    model.track_code_range(codes, reset=True)
+    log.info("the checkpoint has no range of training codes: took it from %d training snapshots: %s .. %s",
+             len(fields), model.code_low.tolist(), model.code_high.tolist())
+
+
 def evaluate(cfg: DictConfig) -> dict[str, float]:
     """Evaluate `cfg.ckpt_path`; returns the metrics (also written to metrics.json)."""
     if cfg.get("threads"):
@@ -54,6 +89,7 @@ def evaluate(cfg: DictConfig) -> dict[str, float]:
     output_dir = Path(cfg.paths.output_dir)
     model = load(cfg.ckpt_path)
     scene = model.scene
+    choose_dynamics(model, cfg.get("dynamics"), cfg.ckpt_path)
     data = dict(model.checkpoint.get("data") or {})
     if not data:
         raise ValueError(f"checkpoint {cfg.ckpt_path} records no data settings; cannot find its test trajectories")
@@ -62,6 +98,7 @@ def evaluate(cfg: DictConfig) -> dict[str, float]:
     dcfg = DatasetConfig.from_mapping(data)
     ensure_dataset(scene, dcfg, path, on_mismatch=on_mismatch)
     split = load_split(path, cfg.split, scene=scene, cfg=dcfg)
+    ensure_code_range(model, path, scene, dcfg)
 
     n = len(split) if cfg.max_trajectories is None else min(int(cfg.max_trajectories), len(split))
     dt = float(cfg.dt) if cfg.dt is not None else float(split.times[1] - split.times[0])

@@ -100,11 +100,17 @@ def evaluate_rollouts(
     q0 = model.reduce(pts_r, fields_r[:, 0])
     v0 = model.project_velocity(q0, pts_r, vel0)
     integ = get_integrator(integrator)
+    dynamics = model.dynamics(quadrature)  # a tabulated dynamics is built (and cached) here, outside the timing
+    table_info = dict(getattr(dynamics, "info", {}))
+    counts0 = (getattr(dynamics, "fallback_rows", 0), getattr(dynamics, "evaluated_rows", 0))
     start = time.perf_counter()
     controls = trajectory_controls(scene, states[:, 0], q0)
     traj = model.rollout(q0, v0, dt=dt, steps=T - 1, integrator=integ, quadrature=quadrature, on_divergence="mark",
                          controls=controls)
     rollout_seconds = time.perf_counter() - start
+    if "table_nodes" in table_info:  # share of the rollout's evaluations that left the table's box (exact there)
+        table_info["table_fallback_fraction"] = (dynamics.fallback_rows - counts0[0]) / max(
+            dynamics.evaluated_rows - counts0[1], 1)
 
     d = model.latent_dim
     flat_q = traj.q.reshape(n * T, d)
@@ -147,6 +153,9 @@ def evaluate_rollouts(
     metrics["frames"] = float(T)
     metrics["evaluation_points"] = float(len(points))
     metrics["fields_seconds_per_trajectory"] = (rollout_seconds + decode_seconds) / n  # rollout + decoding
+    for key in ("table_nodes", "table_points", "table_error", "table_seconds", "table_fallback_fraction"):  # offline cost of a tabulated dynamics
+        if key in table_info:
+            metrics[key] = float(table_info[key])
     return RolloutEvaluation(
         metrics=metrics, times=np.asarray(times), q_pred=q_pred_np, q_ref=q_ref_np, pred_fields=pred_np,
         true_fields=true_np, points=np.asarray(points),

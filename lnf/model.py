@@ -90,12 +90,16 @@ class LagrangianNeuralField(ReducedModel):
             0 gives the paper's loss ℓ^r + ℓ^p exactly (see :meth:`losses`).
         energy_weight: λ_E of the optional potential-energy loss ℓ^E = huber((Ṽ(q̃) − V)/E_scale), Ṽ the pulled-back
             potential at the snapshot's code and V the full-order one (not in the paper; see :meth:`losses`).
+        gradient_weight: λ_G of the optional gradient (Sobolev) loss ℓ^G = (1/N) Σ_j ω0 ‖∇_X φ − ∇_X q‖² against
+            the full-order field gradient at the observed points (not in the paper; see :meth:`losses`).
         clamp: φ = s(X) ψ with the scene's clamp factor s (:class:`lnf.boundary.ClampedField`), so the field
             meets a clamped boundary exactly; not in the paper (its scenes have none).
         quadrature: rule for the integrals of the reduced dynamics (default Gauss–Legendre 8×8).
-        dynamics: None (the pulled-back Lagrangian, our model) or a ``_target_`` spec of learned latent
-            dynamics, e.g. ``lnf.baselines.latent_mlp.LatentMLPDynamics`` (the black-box baseline; it is
-            fitted after the field, on the codes of the training trajectories).
+        dynamics: None (the pulled-back Lagrangian, our model); a ``lnf.tabulated.TabulatedDynamics`` spec
+            (the same Lagrangian with M̃ and Ṽ read from a Chebyshev table on the training codes' range widened
+            by ``margin``, see :meth:`dynamics`); or a ``_target_`` spec of learned latent dynamics, e.g.
+            ``lnf.baselines.latent_mlp.LatentMLPDynamics`` (the black-box baseline; it is fitted after the
+            field, on the codes of the training trajectories).
 
     Defaults are those of ``conf/model/lnf.yaml``: w0 = 10 rather than the paper's 30, and λ_v = 0.1 (see the README).
     """
@@ -117,6 +121,7 @@ class LagrangianNeuralField(ReducedModel):
         velocity_weight: float = 0.1,
         clamp: bool = False,
         energy_weight: float = 0.0,
+        gradient_weight: float = 0.0,
         quadrature: Optional[QuadratureRule] = None,
         dynamics: Optional[dict[str, Any]] = None,
     ) -> None:
@@ -131,6 +136,9 @@ class LagrangianNeuralField(ReducedModel):
         if not energy_weight >= 0:
             raise ValueError(f"model.energy_weight must be ≥ 0, got {energy_weight!r}")
         self.energy_weight = float(energy_weight)
+        if not gradient_weight >= 0:
+            raise ValueError(f"model.gradient_weight must be ≥ 0, got {gradient_weight!r}")
+        self.gradient_weight = float(gradient_weight)
         self.field = ModulatedSiren(latent_dim=latent_dim, in_dim=scene.body_dim, out_dim=scene.field_dim,
                                     width=width, depth=depth, w0=w0, hyper_width=hyper_width,
                                     hyper_depth=hyper_depth, hyper_init_scale=hyper_init_scale)
@@ -146,8 +154,16 @@ class LagrangianNeuralField(ReducedModel):
                              persistent=False)
         self.log_step_size = nn.Parameter(torch.tensor(math.log(step_size)))
         self.latent_dynamics: Optional[nn.Module] = None
-        if dynamics is not None and not _is_lagrangian(dynamics):
+        self.tabulation: Optional[dict[str, Any]] = None
+        if dynamics is not None and _is_tabulated(dynamics):
+            self.set_tabulation(dynamics)
+        elif dynamics is not None and not _is_lagrangian(dynamics):
             self.latent_dynamics = build({**dynamics, "latent_dim": int(latent_dim)})
+        # range of the codes of the last training epoch (the box of a tabulated dynamics); NaN until trained
+        self.register_buffer("code_low", torch.full((int(latent_dim),), float("nan")))
+        self.register_buffer("code_high", torch.full((int(latent_dim),), float("nan")))
+        self._register_load_state_dict_pre_hook(_fill_code_range, with_module=True)
+        self._table_cache: tuple[Any, Any] = (None, None)
 
     @property
     def step_size(self) -> Tensor:
@@ -166,14 +182,68 @@ class LagrangianNeuralField(ReducedModel):
         return reduce(self.field, points, values, density, self.step_size, steps, codes=codes)
 
     def dynamics(self, quadrature: "Quadrature | QuadratureRule | None" = None) -> Any:
-        """The pulled-back Lagrangian system, or the learned latent dynamics of the black-box baseline."""
-        if self.latent_dynamics is None:
+        """The pulled-back Lagrangian system (tabulated if ``tabulation`` is set), or the learned latent
+        dynamics of the black-box baseline.
+
+        A table is built once per quadrature and parameter state (cached until the parameters change)."""
+        if self.latent_dynamics is not None:
+            return self.latent_dynamics.as_dynamics(self.lagrangian_dynamics(quadrature))
+        if self.tabulation is None:
             return self.lagrangian_dynamics(quadrature)
-        return self.latent_dynamics.as_dynamics(self.lagrangian_dynamics(quadrature))
+        key = (id(quadrature), quadrature, tuple(p._version for p in self.parameters()),
+               tuple(self.code_low.tolist()), tuple(self.code_high.tolist()), tuple(sorted(self.tabulation.items())))
+        if self._table_cache[0] != key:
+            self._table_cache = (key, self._build_table(quadrature))
+        return self._table_cache[1]
+
+    def _build_table(self, quadrature: "Quadrature | QuadratureRule | None") -> Any:
+        from lnf.tabulated import TabulatedDynamics
+
+        opts = dict(self.tabulation or {})
+        margin = float(opts.pop("margin", 0.25))
+        low, high = self.code_low.double(), self.code_high.double()
+        if not (torch.isfinite(low).all() and torch.isfinite(high).all()):
+            raise ValueError("dynamics=tabulated needs the range of the training codes, which this model does not "
+                             "have (a checkpoint written before lnf recorded it, or an untrained model): retrain, "
+                             "or call model.track_code_range(codes) with representative codes first")
+        span = (high - low).clamp_min(1e-3)
+        # built from a float64 copy of φ: the table's derivatives would amplify float32 rounding by nodes²
+        return TabulatedDynamics(self.lagrangian_dynamics(quadrature), (low - margin * span).tolist(),
+                                 (high + margin * span).tolist(),
+                                 builder=self.lagrangian_dynamics(quadrature, dtype=torch.float64), **opts)
+
+    def set_tabulation(self, spec: Optional[dict[str, Any]]) -> None:
+        """Roll out with a Chebyshev table of M̃, Ṽ (`spec`: options of :class:`lnf.tabulated.TabulatedDynamics`
+        plus ``margin``, with or without its ``_target_``), or with the exact pullback (None)."""
+        if spec is None:
+            self.tabulation = None
+            return
+        opts = {k: v for k, v in dict(spec).items() if k != "_target_"}
+        allowed = {"tol", "min_nodes", "max_nodes", "max_table_points", "chunk", "margin"}
+        unknown = sorted(set(opts) - allowed)
+        if unknown:
+            raise ValueError(f"dynamics (tabulated) got unknown keys {unknown}; expected some of {sorted(allowed)}")
+        if "margin" in opts and not float(opts["margin"]) >= 0:
+            raise ValueError(f"dynamics.margin must be ≥ 0, got {opts['margin']!r}")
+        self.tabulation = opts
+
+    @torch.no_grad()
+    def track_code_range(self, codes: Tensor, reset: bool = False) -> None:
+        """Widen the recorded range of training codes (B, d) by these codes (start afresh with `reset`)."""
+        codes = codes.detach().to(self.code_low)
+        finite = torch.isfinite(codes).all(-1)
+        if not bool(finite.any()):
+            return
+        low, high = codes[finite].amin(0), codes[finite].amax(0)
+        if not reset and bool(torch.isfinite(self.code_low).all()):
+            low, high = torch.minimum(low, self.code_low), torch.maximum(high, self.code_high)
+        self.code_low.copy_(low)
+        self.code_high.copy_(high)
 
     # ------------------------------------------------------------------ training losses (DESIGN.md §2)
     def losses(self, points: Tensor, values: Tensor, velocities: Optional[Tensor] = None,
-               potential: Optional[Tensor] = None, energy_factor: float = 1.0) -> dict[str, Tensor]:
+               potential: Optional[Tensor] = None, energy_factor: float = 1.0,
+               gradients: Optional[Tensor] = None) -> dict[str, Tensor]:
         """Training losses of snapshots (B, N, A) observed at points (B, N, dim_B) (DESIGN.md §2).
 
         ``loss = ℓ^r + ℓ^p`` (+ λ_v ℓ^v when ``velocity_weight`` > 0 and `velocities` (B, N, A) are given),
@@ -187,11 +257,15 @@ class LagrangianNeuralField(ReducedModel):
         gap (Ṽ(q̃) − V)/E_scale, Ṽ the potential pulled back through φ on the model's
         quadrature. Where V depends on ∇_X q (elasticity, eq. 11), values alone leave ∇_X φ loose, and its
         error becomes stiffness in the reduced equations; ℓ^E ties the pulled-back energy to the true one.
+
+        With ``gradient_weight`` > 0 and the snapshots' full-order field gradients `gradients` (B, N, A, dim_B),
+        also λ_G ℓ^G with ℓ^G = (1/N) Σ_j ω0 ‖∇_X φ(q̃, X_j) − ∇_X q_j‖²: ∇_X φ itself fitted (Sobolev training).
         """
         density = self._density(points)
         K = self.reduction_steps
         codes = self._reduce(points, values, density, K)
-        jet = self.field.jet(codes, points, order=1)
+        use_gradients = self.gradient_weight > 0 and gradients is not None
+        jet = self.field.jet(codes, points, order=1, spatial=use_gradients)
         rec = reconstruction_loss(jet.value, values, density)
         volume = math.prod(hi - lo for lo, hi in self.scene.bounds)
         weights = volume * density / points.shape[-2]  # Monte-Carlo quadrature of the observed points
@@ -212,14 +286,29 @@ class LagrangianNeuralField(ReducedModel):
             energy = torch.nn.functional.huber_loss(gap, torch.zeros_like(gap), reduction="none", delta=0.1)
             total = total + energy_factor * self.energy_weight * energy
             out["energy"] = energy.mean()
+        if use_gradients:
+            grad = reconstruction_loss(jet.G.flatten(-2), gradients.to(jet.G).flatten(-2), density)
+            total = total + self.gradient_weight * grad
+            out["gradient"] = grad.mean()
         out["loss"] = total.mean()
         out["codes"] = codes.detach()
         return out
 
     def extra_repr(self) -> str:
         kind = "lagrangian" if self.latent_dynamics is None else type(self.latent_dynamics).__name__
+        kind = "tabulated lagrangian" if self.tabulation is not None and self.latent_dynamics is None else kind
         return f"{super().extra_repr()}, K={self.reduction_steps}, dynamics={kind}"
 
 
 def _is_lagrangian(spec: dict[str, Any]) -> bool:
     return str(spec.get("_target_", "")).endswith("ReducedDynamics")
+
+
+def _is_tabulated(spec: dict[str, Any]) -> bool:
+    return str(spec.get("_target_", "")).endswith("TabulatedDynamics")
+
+
+def _fill_code_range(module: "LagrangianNeuralField", state_dict: dict[str, Tensor], prefix: str, *args: Any) -> None:
+    """Checkpoints written before lnf recorded the training codes' range load with an unknown (NaN) range."""
+    for name in ("code_low", "code_high"):
+        state_dict.setdefault(prefix + name, torch.full_like(getattr(module, name), float("nan")))

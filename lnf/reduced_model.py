@@ -8,6 +8,7 @@ Our model (:class:`lnf.model.LagrangianNeuralField`) and the POD-Galerkin baseli
 """
 from __future__ import annotations
 
+import copy
 from typing import Any, Optional
 
 import torch
@@ -96,12 +97,18 @@ class ReducedModel(nn.Module):
             raise ValueError(f"{what} contain NaN or inf")
 
     # ------------------------------------------------------------------ reduced dynamics
-    def lagrangian_dynamics(self, quadrature: "Quadrature | QuadratureRule | None" = None) -> ReducedDynamics:
-        """The scene's Lagrangian pulled back through φ on `quadrature` (default: the model's rule)."""
+    def lagrangian_dynamics(self, quadrature: "Quadrature | QuadratureRule | None" = None,
+                            dtype: Optional[torch.dtype] = None) -> ReducedDynamics:
+        """The scene's Lagrangian pulled back through φ on `quadrature` (default: the model's rule).
+
+        `dtype` other than the model's evaluates a copy of φ in that precision (e.g. float64 for tables)."""
         rule = quadrature if quadrature is not None else self.quadrature_rule
         quad = rule if isinstance(rule, Quadrature) else rule.build(self.scene.bounds)
         p = self.reference_tensor()
-        return ReducedDynamics(self.field.jet, self.scene, quad.to(device=p.device, dtype=p.dtype))
+        field = self.field
+        if dtype is not None and dtype != p.dtype:
+            field = copy.deepcopy(self.field).to(dtype)
+        return ReducedDynamics(field.jet, self.scene, quad.to(device=p.device, dtype=dtype or p.dtype))
 
     def dynamics(self, quadrature: "Quadrature | QuadratureRule | None" = None) -> Any:
         """The dynamics that rollouts integrate (the pulled-back Lagrangian unless a subclass says otherwise)."""

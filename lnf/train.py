@@ -92,6 +92,7 @@ def train(cfg: DictConfig) -> dict[str, float]:
     module = LNFModule(scene=scene_spec, model=model_spec, quadrature=_container(cfg.quadrature),
                        optimizer=_container(cfg.optimizer), data=datamodule.describe())
     datamodule.potential_targets = getattr(module.model, "energy_weight", 0.0) > 0  # items carry V for ℓ^E
+    datamodule.gradient_targets = getattr(module.model, "gradient_weight", 0.0) > 0  # items carry ∇_X q for ℓ^G
     evaluation = RolloutEvaluationCallback(integrator=_container(cfg.integrator), output_dir=str(output_dir),
                                            **_container(cfg.evaluation))
     callbacks = [hydra.utils.instantiate(c) for c in (cfg.get("callbacks") or {}).values() if c is not None]

@@ -31,7 +31,8 @@ def test_every_option_composes_and_instantiates(group, option, tmp_path):
     elif group == "dynamics":
         model_spec = {**OmegaConf.to_container(cfg.model, resolve=True), "dynamics": plain}
         model = build_model(OmegaConf.to_container(cfg.scene), model_spec, OmegaConf.to_container(cfg.quadrature))
-        assert (model.latent_dynamics is None) == (option == "lagrangian")
+        assert (model.latent_dynamics is None) == (option in ("lagrangian", "tabulated"))
+        assert (model.tabulation is not None) == (option == "tabulated")
         if option == "latent_mlp":  # no Hamiltonian: the option switches the integrator to RK4
             assert cfg.integrator._target_.endswith("RK4")
     elif group == "data":

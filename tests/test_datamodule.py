@@ -98,3 +98,10 @@ def test_potential_targets_are_the_full_order_potential_of_each_snapshot(data_di
     _, expected = dm.scene.true_energy_parts(split.states[2, 3])
     assert potential.shape == () and potential.item() == pytest.approx(float(expected), rel=1e-6)
     assert len(_module(data_dir).snapshots("train")[0]) == 3  # off by default: (points, values, velocities)
+
+
+def test_gradient_targets_need_a_scene_that_gives_them(data_dir):
+    dm = _module(data_dir)
+    dm.gradient_targets = True
+    with pytest.raises(ValueError, match="gradient_weight=0"):
+        dm.snapshots("train")

@@ -151,3 +151,28 @@ def test_modal_release_is_an_equilibrium_that_excites_one_mode(rng):
 
     shape = ElasticCantilever(release="shape", **small)
     assert outside(modal) < 0.06 < 0.2 < outside(shape)
+
+
+def test_field_gradients_are_exact_for_an_affine_displacement(scene, rng):
+    """The bilinear interpolant reproduces u = A X + b, so its gradient is A anywhere in B."""
+    A = np.array([[0.05, -0.02], [0.03, 0.04]])
+    u = (scene.mesh.nodes @ A.T + np.array([0.01, -0.02]))[None]
+    _, v0, load = scene.unpack(scene.sample_initial_states(1, rng))
+    states = scene.pack(u, v0, load)
+    points = rng.random((9, 2)) * np.array([scene.length, scene.height])
+    G = scene.field_gradients(states, points)
+    assert G.shape == (1, 9, 2, 2)
+    np.testing.assert_allclose(G[0], np.broadcast_to(A, (9, 2, 2)), atol=1e-12)
+
+
+def test_field_gradients_match_differences_of_the_interpolated_field(scene, rng):
+    states = scene.sample_initial_states(2, rng)
+    points = np.array([[0.31, 0.13], [0.77, 0.29]])  # inside cells, away from their edges
+    G = scene.field_gradients(states, points)
+    h = 1e-6
+    for j in range(2):
+        step = np.zeros(2)
+        step[j] = h
+        up, _ = scene.fields(states, points + step)
+        down, _ = scene.fields(states, points - step)
+        np.testing.assert_allclose(G[..., j], (up - down) / (2 * h), atol=1e-7)

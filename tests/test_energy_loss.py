@@ -46,3 +46,23 @@ def test_energy_warmup_switches_the_loss_on_then_ramps_it():
                        optimizer={"energy_warmup_epochs": 4})
     factors = [module.energy_factor(epoch) for epoch in range(10)]
     assert factors == [0.0, 0.0, 0.0, 0.0, 0.25, 0.5, 0.75, 1.0, 1.0, 1.0]
+
+
+def test_gradient_loss_fits_the_field_gradient(model):
+    """ℓ^G = (1/N) Σ ω0 ‖∇_X φ − ∇_X q‖², added with weight λ_G; it trains the field."""
+    model.gradient_weight = 2.0
+    points = torch.rand(2, 20, 2) * torch.tensor([1.0, 0.4])
+    values = 0.01 * torch.randn(2, 20, 2)
+    target = 0.05 * torch.randn(2, 20, 2, 2)
+    out = model.losses(points, values, gradients=target)
+    G = model.field.jet(out["codes"], points, order=1, spatial=True).G
+    density = model.scene.density(points)
+    expected = (density * (G - target).pow(2).sum((-1, -2))).mean(-1).mean()
+    torch.testing.assert_close(out["gradient"], expected)
+    without = model.losses(points, values)
+    assert "gradient" not in without
+    torch.testing.assert_close(out["loss"], without["loss"] + 2.0 * expected)
+    out["loss"].backward()
+    assert all(p.grad is not None for p in model.field.parameters())
+    with pytest.raises(ValueError, match="gradient_weight"):
+        LagrangianNeuralField(model.scene, gradient_weight=-1.0)

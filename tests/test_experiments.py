@@ -66,10 +66,13 @@ def test_pareto_study_smoke(studies):
     out, stdout = _study("pareto", studies)
     rows = _csv(out / "pareto.csv")
     assert _methods(rows) == {"lnf", "latent_mlp", "pod", "full_order"}
-    assert {r["knob"] for r in rows} >= {"width", "k", "resolution", "quadrature", "integrator"}
+    assert {r["knob"] for r in rows} >= {"width", "k", "resolution", "quadrature", "integrator", "tabulated"}
+    tabulated = [r for r in rows if r["knob"] == "tabulated"]
+    assert all(float(r["table_nodes"]) >= 16 and float(r["table_fallback_fraction"]) >= 0 for r in tabulated)
     for name in ("pareto.png", "quadrature.png", "summary.md"):
         assert (out / name).stat().st_size > 0
-    assert "Black-box points dominated" in (out / "summary.md").read_text()
+    summary = (out / "summary.md").read_text()
+    assert "Black-box points dominated" in summary and "latent rollout cost" in summary
     # rerunning reuses every finished sweep instead of training again
     _, again = _study("pareto", studies)
     assert "reusing" in again and "done in" not in again
@@ -165,7 +168,8 @@ def test_elastic_diagnostics_smoke(tmp_path):
           "data.n_train=2", "data.n_val=1", "data.n_test=1", "data.n_times=8", "data.train_times=4",
           "data.fine_resolution=8", "data.coarse_resolution=8", "model.width=16", "model.hyper_width=8",
           "quadrature.order=[4,3]", "evaluation.long_steps=4", "evaluation.long_trajectories=1",
-          f"paths.data_dir={tmp_path / 'data'}", f"hydra.run.dir={run}"])
+          "model.gradient_weight=1.0", f"paths.data_dir={tmp_path / 'data'}", f"hydra.run.dir={run}"])
+    assert "train/gradient" in json.loads((run / "metrics.json").read_text())  # the FEM's ∇_X u reached the loss
     out = _run(["experiments/elastic_diagnostics.py", "--ckpt", str(run / "checkpoints" / "last.ckpt")]).stdout
     assert "T_FEM" in out and "velocity-gradient relative error" in out
 

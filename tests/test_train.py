@@ -191,3 +191,18 @@ def test_every_scene_experiment_trains_and_evaluates(experiment, tmp_path):
     assert metrics["train_seconds"] > 0
     model = lnf.load(Path(cfg.paths.output_dir) / "checkpoints" / "last.ckpt")
     assert model.scene.name == experiment.split("_actuated")[0] and model.latent_dim == cfg.model.latent_dim
+
+
+def test_evaluate_with_tabulated_dynamics_matches_the_exact_pullback(trained, tmp_path):
+    """dynamics=tabulated at evaluation: the checkpoint's training-code range boxes the table; same metrics."""
+    _, cfg, _ = trained
+    ckpt = Path(cfg.paths.output_dir) / "checkpoints" / "last.ckpt"
+    assert torch.isfinite(lnf.load(ckpt).code_low).all()  # recorded during training
+    common = [f"ckpt_path={ckpt}", "integrator=rk4", "figures=0"]
+    exact = evaluate(compose_config("evaluate", [*common, "dynamics=lagrangian"], tmp_path))
+    table = evaluate(compose_config("evaluate", [*common, "dynamics=tabulated"], tmp_path))
+    assert table["table_nodes"] >= 16 and table["table_error"] < 1e-5 and 0 <= table["table_fallback_fraction"] <= 1
+    if np.isfinite(exact["field_rel_l2/all/median"]):
+        assert table["field_rel_l2/all/median"] == pytest.approx(exact["field_rel_l2/all/median"], rel=1e-3, abs=1e-4)
+    with pytest.raises(ValueError, match="can switch between"):
+        evaluate(compose_config("evaluate", [*common, "dynamics=latent_mlp"], tmp_path))

@@ -140,6 +140,11 @@ class Scene:
         """Configuration field q and velocity field q̇ (…, N, A) of full-order states (…, S) at points (N, dim_B)."""
         raise NotImplementedError
 
+    def field_gradients(self, states: np.ndarray, points: np.ndarray) -> np.ndarray:
+        """∇_X q (…, N, A, dim_B) of full-order states (…, S) at points (N, dim_B): the target of the
+        optional gradient (Sobolev) loss ``model.gradient_weight``."""
+        raise ValueError(f"scene {self.name!r} gives no field gradients; set model.gradient_weight=0")
+
     def true_energy_parts(self, states: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(kinetic, potential) energy of full-order states (…, S) → each (…)."""
         raise NotImplementedError

@@ -346,6 +346,15 @@ class ElasticCantilever(Scene):
         out = out.reshape(*lead, N, 4)
         return out[..., :2], out[..., 2:]
 
+    def field_gradients(self, states: np.ndarray, points: np.ndarray) -> np.ndarray:
+        """∇_X u (…, N, 2, 2) [component a, direction j] of the FEM's bilinear displacement at points (N, 2)."""
+        u, _, _ = self.unpack(np.asarray(states))
+        lead, N = u.shape[:-2], len(points)
+        flat = u.reshape(-1, self.n_nodes, 2).transpose(1, 0, 2).reshape(self.n_nodes, -1)  # (nn, B·2)
+        parts = [(D @ flat).reshape(N, -1, 2) for D in self.mesh.interpolation_gradient(np.asarray(points, np.float64))]
+        G = np.stack(parts, -1).transpose(1, 0, 2, 3)  # (B, N, 2a, 2j)
+        return G.reshape(*lead, N, 2, 2)
+
     def true_energy_parts(self, states: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         u, v, _ = self.unpack(np.asarray(states))
         lead = u.shape[:-2]

@@ -122,18 +122,31 @@ class StructuredQ1Mesh:
         """Σ_g w W(F_g) (B,) for u (B, nn, 2)."""
         return self.gauss_weight * svk_energy_density(self.deformation_gradient(u), lam, mu).sum((1, 2))
 
-    def interpolation(self, points: np.ndarray) -> sp.csr_matrix:
-        """Sparse (N, nn) bilinear interpolation matrix to points (N, 2) (clipped to the box)."""
+    def _cells(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Rows and node columns (4 per point) of the cells holding points (N, 2), and local (s, t) ∈ [0, 1]²."""
         x = np.clip(points[:, 0] / self.hx, 0, self.nx)
         y = np.clip(points[:, 1] / self.hy, 0, self.ny)
         i = np.minimum(np.floor(x).astype(int), self.nx - 1)
         j = np.minimum(np.floor(y).astype(int), self.ny - 1)
-        s, t = x - i, y - j
         rows = np.repeat(np.arange(len(points)), 4)
         cols = np.stack([i * (self.ny + 1) + j, (i + 1) * (self.ny + 1) + j, (i + 1) * (self.ny + 1) + j + 1,
                          i * (self.ny + 1) + j + 1], -1).ravel()
+        return rows, cols, x - i, y - j
+
+    def interpolation(self, points: np.ndarray) -> sp.csr_matrix:
+        """Sparse (N, nn) bilinear interpolation matrix to points (N, 2) (clipped to the box)."""
+        rows, cols, s, t = self._cells(points)
         vals = np.stack([(1 - s) * (1 - t), s * (1 - t), s * t, (1 - s) * t], -1).ravel()
         return sp.csr_matrix((vals, (rows, cols)), shape=(len(points), self.n_nodes))
+
+    def interpolation_gradient(self, points: np.ndarray) -> tuple[sp.csr_matrix, sp.csr_matrix]:
+        """(∂/∂X₁, ∂/∂X₂) of the bilinear interpolant at points (N, 2): two sparse (N, nn) matrices
+        (the element's gradient, piecewise: on a cell edge the cell found by :meth:`interpolation`)."""
+        rows, cols, s, t = self._cells(points)
+        dx = np.stack([-(1 - t), 1 - t, t, -t], -1).ravel() / self.hx
+        dy = np.stack([-(1 - s), -s, s, 1 - s], -1).ravel() / self.hy
+        shape = (len(points), self.n_nodes)
+        return sp.csr_matrix((dx, (rows, cols)), shape=shape), sp.csr_matrix((dy, (rows, cols)), shape=shape)
 
     def stable_time_step(self, lam: float, mu: float, density: float) -> float:
         """CFL estimate h_min / c_p of explicit time stepping (c_p the dilatational wave speed)."""

@@ -40,7 +40,9 @@ class SnapshotDataset(Dataset):
 
     Item: points (Nobs, dim_B), values (Nobs, A), velocities (Nobs, A), float32, and with `scene` given the
     full-order potential energy V of the snapshot (a 0-d float32 tensor, from the stored states through
-    ``scene.true_energy_parts``: the target of the optional energy loss). With ``noise`` > 0, item
+    ``scene.true_energy_parts``: the target of the optional energy loss; NaN without `scene` when gradients
+    follow), and with `gradient_scene` given the full-order ∇_X q at the observed points (Nobs, A, dim_B), from
+    ``scene.field_gradients`` (the target of the optional gradient loss). With ``noise`` > 0, item
     (i, k) gets Gaussian noise of std noise·RMS (RMS of the split's observed values, resp. velocities) drawn
     from a generator seeded by (seed, i, k): the same noise in both modes, in any worker, after a restart.
     """
@@ -48,7 +50,8 @@ class SnapshotDataset(Dataset):
     KEYS = ("coarse_fields", "coarse_velocities")
 
     def __init__(self, path: str | Path, split: str, n_times: int, noise: float = 0.0, seed: int = 0,
-                 in_memory: bool = False, scene: Optional[Scene] = None) -> None:
+                 in_memory: bool = False, scene: Optional[Scene] = None,
+                 gradient_scene: Optional[Scene] = None) -> None:
         self.path, self.split, self.n_times = Path(path), split, int(n_times)
         self.noise, self.seed = float(noise), int(seed)
         with h5py.File(self.path, "r") as f:
@@ -60,6 +63,10 @@ class SnapshotDataset(Dataset):
             self.potential = None if scene is None else torch.as_tensor(np.stack([  # (n, n_times), one trajectory at a time
                 scene.true_energy_parts(f[f"{split}/states"][i, :self.n_times])[1] for i in range(self.index.shape[0])
             ]), dtype=torch.float32)
+            coarse = f["grids/coarse"][...]
+            self.gradients = None if gradient_scene is None else torch.as_tensor(np.stack([  # (n, n_times, Nobs, A, dim_B)
+                gradient_scene.field_gradients(f[f"{split}/states"][i, :self.n_times], coarse[self.index[i]])
+                for i in range(self.index.shape[0])]), dtype=torch.float32)
         self._file: Optional[h5py.File] = None
         self._pid: Optional[int] = None
         self.noise_std = (self.noise * self._observed_rms(self.KEYS[0]), self.noise * self._observed_rms(self.KEYS[1])) \
@@ -106,7 +113,10 @@ class SnapshotDataset(Dataset):
         values, velocities = self._noisy(i, k, self._read(self.KEYS[0], i, k), self._read(self.KEYS[1], i, k))
         item = (self.points[i], torch.from_numpy(np.ascontiguousarray(values)),
                 torch.from_numpy(np.ascontiguousarray(velocities)))
-        return item if self.potential is None else (*item, self.potential[i, k])
+        if self.potential is None and self.gradients is None:
+            return item
+        potential = self.potential[i, k] if self.potential is not None else torch.tensor(float("nan"))
+        return (*item, potential) if self.gradients is None else (*item, potential, self.gradients[i, k])
 
     def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """All items stacked: points (n, Nobs, dim_B), values and velocities (n, n_times, Nobs, A)."""
@@ -147,7 +157,8 @@ class SnapshotDataModule(pl.LightningDataModule):
     RMS over the split; seeded by `seed`), in_memory (read the observations once instead of streaming them
     from the file), shuffle_seed (seed of the per-epoch batch order), and the :class:`DatasetConfig` fields.
     Set ``potential_targets`` (``lnf.train`` does when the model has an energy loss) before the first batch
-    for items that also carry each snapshot's full-order potential energy."""
+    for items that also carry each snapshot's full-order potential energy, and ``gradient_targets`` for items
+    that also carry its ∇_X q at the observed points."""
 
     def __init__(self, scene: "Scene | dict", data_dir: str = "data", path: Optional[str] = None,
                  on_mismatch: str = "regenerate", batch_size: int = 32, num_workers: int = 0,
@@ -168,6 +179,7 @@ class SnapshotDataModule(pl.LightningDataModule):
         self._splits: dict[str, TrajectorySplit] = {}
         self._snapshots: dict[str, SnapshotDataset] = {}
         self.potential_targets = False
+        self.gradient_targets = False
 
     def prepare_data(self) -> None:
         ensure_dataset(self.scene, self.config, self.path, on_mismatch=self.on_mismatch)
@@ -189,7 +201,8 @@ class SnapshotDataModule(pl.LightningDataModule):
         noise = self.noise if split == "train" else 0.0
         self._snapshots[split] = SnapshotDataset(self.path, split, self.config.train_times, noise=noise,
                                                  seed=self.config.seed + 7919, in_memory=self.in_memory,
-                                                 scene=self.scene if self.potential_targets else None)
+                                                 scene=self.scene if self.potential_targets else None,
+                                                 gradient_scene=self.scene if self.gradient_targets else None)
         return self._snapshots[split]
 
     def observations(self, split: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

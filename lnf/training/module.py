@@ -35,14 +35,21 @@ class LNFModule(pl.LightningModule):
                               "schedule": "cosine", "min_lr_ratio": 0.0, "energy_warmup_epochs": 0,
                               **(optimizer or {})}
 
-    def _step(self, batch: tuple[Tensor, ...], stage: str) -> Tensor:
-        points, values, velocities, *potential = batch  # the snapshots' potential energy, for an energy loss
-        out = self.model.losses(points, values, velocities, *potential, energy_factor=self.energy_factor())
+    def _step(self, batch: tuple[Tensor, ...], stage: str, batch_idx: int = 0) -> Tensor:
+        # optional extras: the snapshots' potential energy (energy loss; NaN if only gradients follow) and ∇_X q
+        points, values, velocities, *extra = batch
+        potential = extra[0] if extra and not bool(torch.isnan(extra[0]).all()) else None
+        gradients = extra[1] if len(extra) > 1 else None
+        out = self.model.losses(points, values, velocities, potential, energy_factor=self.energy_factor(),
+                                gradients=gradients)
+        if stage == "train" and hasattr(self.model, "track_code_range"):
+            # the box of a tabulated dynamics: the codes of the current epoch (restarted with its first batch)
+            self.model.track_code_range(out["codes"], reset=batch_idx == 0)
         bs = points.shape[0]
         # epoch values are averaged over DDP ranks (each holds part of the global batch)
         log = functools.partial(self.log, batch_size=bs, on_step=stage == "train", on_epoch=True, sync_dist=True)
         log(f"{stage}/loss", out["loss"], prog_bar=True)
-        for key in ("reconstruction", "projection", "velocity", "energy"):
+        for key in ("reconstruction", "projection", "velocity", "energy", "gradient"):
             if key in out:
                 log(f"{stage}/{key}", out[key])
         if stage == "train":
@@ -60,7 +67,7 @@ class LNFModule(pl.LightningModule):
         return float(min(max((epoch - w + 1) / w, 0.0), 1.0))
 
     def training_step(self, batch: tuple[Tensor, ...], batch_idx: int) -> Tensor:
-        loss = self._step(batch, "train")
+        loss = self._step(batch, "train", batch_idx)
         if not torch.isfinite(loss):
             raise FloatingPointError(
                 f"training loss became {loss.item()} at step {self.global_step}; lower optimizer.lr "

@@ -1,0 +1,312 @@
+"""Tabulated reduced dynamics: the pulled-back M̃(q̃) and Ṽ(q̃) as Chebyshev interpolants on a box of codes.
+
+The reduced Lagrangian L̃ = ½ q̃̇ᵀ M̃(q̃) q̃̇ − Ṽ(q̃) of a conservative scene depends on the codes through
+M̃ and Ṽ only, two smooth functions of d numbers. For small d they can be interpolated once, offline,
+on a tensor-product Chebyshev grid of the box [low, high]^d (the "offline/online" split of model-order
+reduction), and a rollout then evaluates a polynomial instead of φ and its jet at every quadrature point.
+
+The interpolants of M̃ and Ṽ define a Lagrangian system of their own (the derivatives ∂M̃/∂q̃, ∂Ṽ/∂q̃ are
+those of the interpolating polynomials, not separately fitted), so symplectic integrators keep their
+bounded energy error; its distance to the exact pullback is the interpolation error, which the table
+measures at check points when it is built and drives below `tol` by doubling the nodes per axis.
+
+Outside the box (a state the training codes never reached) the exact pullback is evaluated for those rows,
+so the result never depends on the box, only the speed does. Conservative scenes only: a scene with
+damping or loads (``scene.generalized_force``) has forces that depend on t and q̃̇ and is not tabulated.
+Shapes: q̃, q̃̇, p̃ (B, d).
+"""
+from __future__ import annotations
+
+import math
+import time
+from typing import Any, Optional, Sequence
+
+import numpy as np
+import torch
+from numpy.polynomial import chebyshev as C
+from torch import Tensor
+
+from lnf.dynamics import ReducedDynamics
+from lnf.reduction import solve_mass
+
+
+def _symmetric_pairs(d: int) -> list[tuple[int, int]]:
+    return [(i, j) for i in range(d) for j in range(i, d)]
+
+
+class ChebyshevTable:
+    """Tensor-product Chebyshev interpolant of vector-valued f: [low, high]^d → ℝ^c, with all first derivatives.
+
+    Built from values `f_nodes` (n, …, n, c) at Chebyshev points of the first kind
+    (``numpy.polynomial.chebyshev.chebpts1``) on each axis; :meth:`__call__` returns (B, 1 + d, c): the
+    values and ∂f/∂q_i (i = 1…d) of the interpolating polynomial at q (B, d).
+    """
+
+    def __init__(self, f_nodes: np.ndarray, low: Sequence[float], high: Sequence[float],
+                 dtype: torch.dtype = torch.float64, device: "torch.device | str" = "cpu") -> None:
+        d = len(low)
+        n = f_nodes.shape[0]
+        if f_nodes.ndim != d + 1 or any(s != n for s in f_nodes.shape[:d]):
+            raise ValueError(f"f_nodes must have shape ({', '.join(['n'] * d)}, c), got {f_nodes.shape}")
+        self.d, self.n, self.channels = d, n, f_nodes.shape[-1]
+        lo, hi = np.asarray(low, dtype=np.float64), np.asarray(high, dtype=np.float64)
+        if not np.all(hi > lo):
+            raise ValueError(f"table box needs high > low on every axis, got low={lo.tolist()}, high={hi.tolist()}")
+        inv_vander = np.linalg.inv(C.chebvander(C.chebpts1(n), n - 1))  # values at the nodes → coefficients
+        coef = np.asarray(f_nodes, dtype=np.float64)
+        for axis in range(d):
+            coef = np.moveaxis(np.tensordot(inv_vander, coef, axes=([1], [axis])), 0, axis)
+        blocks = [coef]
+        for axis in range(d):  # ∂/∂q_axis = chebder along that axis × dx/dq
+            der = C.chebder(coef, axis=axis) * (2.0 / (hi[axis] - lo[axis]))
+            pad = [(0, 0)] * coef.ndim
+            pad[axis] = (0, 1)
+            blocks.append(np.pad(der, pad))
+        packed = np.stack(blocks, axis=-2)  # (n, …, n, 1 + d, c)
+        self.coef = torch.as_tensor(packed, dtype=dtype, device=device)
+        self.coef64 = torch.as_tensor(packed, dtype=torch.float64, device=device)
+        self.center = torch.as_tensor((hi + lo) / 2, dtype=dtype, device=device)
+        self.half = torch.as_tensor((hi - lo) / 2, dtype=dtype, device=device)
+        self.k = torch.arange(n, dtype=dtype, device=device)
+
+    def scaled(self, q: Tensor) -> Tensor:
+        """x ∈ [−1, 1]^d inside the box (B, d)."""
+        return (q - self.center.to(q)) / self.half.to(q)
+
+    def __call__(self, q: Tensor) -> Tensor:
+        return self.evaluate(q, self.coef)
+
+    def evaluate(self, q: Tensor, coef: Tensor) -> Tensor:
+        return self.evaluate_scaled(self.scaled(q), coef)
+
+    def evaluate_scaled(self, x: Tensor, coef: Tensor) -> Tensor:
+        """The interpolant at scaled points x (B, d) (clamped to [−1, 1]): (B, 1 + d, c)."""
+        x = x.clamp(-1.0, 1.0)
+        basis = torch.cos(torch.acos(x).unsqueeze(-1) * self.k.to(x))  # T_k(x) = cos(k arccos x): (B, d, n)
+        if self.d == 1:
+            return (basis[:, 0] @ coef.reshape(self.n, -1)).reshape(x.shape[0], *coef.shape[1:])
+        out = torch.einsum("bk,k...->b...", basis[:, 0], coef)
+        for axis in range(1, self.d):
+            out = torch.einsum("bk,bk...->b...", basis[:, axis], out)
+        return out  # (B, 1 + d, c)
+
+
+class TabulatedDynamics:
+    """The pulled-back dynamics of `exact` with M̃ and Ṽ read from a Chebyshev table on [low, high]^d.
+
+    Args:
+        exact: the :class:`ReducedDynamics` to tabulate (its jet, scene and quadrature); evaluated off the box.
+        builder: the same dynamics in the precision the table is built from (default `exact`; a float64
+            copy keeps the derivatives of the interpolant clean of float32 rounding).
+        low, high: the box of codes (d,) each, e.g. the training codes' range widened by a margin.
+        tol: target relative interpolation error of M̃ and of g̃ = ∂Ṽ/∂q̃ at check points (relative to their
+            largest magnitude on the box), floored at 10 rounding units of the rollout's dtype (1.2e-6 for
+            float32); nodes per axis double from `min_nodes` until it is met.
+        min_nodes, max_nodes: nodes per axis (the table holds nodes^d evaluations of the exact pullback).
+        max_table_points: refuse tables larger than this (d ≥ 3 grows as nodes^d); use the exact dynamics.
+
+    ``info`` records the nodes per axis, the achieved error and the build time [s].
+    """
+
+    def __init__(self, exact: ReducedDynamics, low: Sequence[float], high: Sequence[float], tol: float = 1e-7,
+                 min_nodes: int = 16, max_nodes: int = 256, max_table_points: int = 65536, chunk: int = 256,
+                 builder: Optional[ReducedDynamics] = None) -> None:
+        if exact.force_fn is not None:
+            raise ValueError(f"dynamics=tabulated needs a conservative scene; {type(exact.scene).__name__} has "
+                             "damping or external loads (t- and q̃̇-dependent forces). Use dynamics=lagrangian")
+        low_t = torch.as_tensor(low, dtype=torch.float64).flatten()
+        high_t = torch.as_tensor(high, dtype=torch.float64).flatten()
+        if not (torch.isfinite(low_t).all() and torch.isfinite(high_t).all()):
+            raise ValueError(f"the table box must be finite, got low={low_t.tolist()}, high={high_t.tolist()} "
+                             "(a checkpoint saved before lnf tracked its training codes has no box: retrain it, "
+                             "or pass low/high)")
+        if not tol > 0:
+            raise ValueError(f"dynamics.tol must be > 0, got {tol!r}")
+        if int(min_nodes) < 2 or int(max_nodes) < int(min_nodes):
+            raise ValueError(f"need 2 ≤ dynamics.min_nodes ≤ dynamics.max_nodes, got {min_nodes!r}, {max_nodes!r}")
+        self.exact = exact
+        self.builder = builder if builder is not None else exact
+        self.d = int(low_t.numel())
+        if int(min_nodes) ** self.d > int(max_table_points):
+            raise ValueError(f"a table of latent dimension d = {self.d} needs at least {int(min_nodes) ** self.d} "
+                             f"pullback evaluations (> dynamics.max_table_points = {max_table_points}); "
+                             "use dynamics=lagrangian for this model")
+        self.chunk = int(chunk)
+        self.controls: Optional[Tensor] = None  # conservative: no loads (kept for the rollout interface)
+        ref = exact.density_weights
+        self.dtype, self.device = ref.dtype, ref.device  # of the rollout
+        build_dtype = self.builder.density_weights.dtype
+        self.low, self.high = low_t.tolist(), high_t.tolist()
+        self.pairs = _symmetric_pairs(self.d)
+        channel = {pair: c for c, pair in enumerate(self.pairs)}
+        self.symmetric_index = torch.tensor([channel[(min(a, b), max(a, b))] for a in range(self.d) for b in range(self.d)],
+                                            device=self.device)  # M̃_ab's channel, row-major (d²,)
+        self.fallback_rows = 0  # rows evaluated exactly because they left the box (diagnostics)
+        self.evaluated_rows = 0
+        start = time.perf_counter()
+        # below ~10 rounding units of the rollout's precision the table cannot matter (nor be measured: the
+        # builder's constants, e.g. a float32 model's quadrature, carry that rounding)
+        tol = max(float(tol), 10 * torch.finfo(self.dtype).eps, 100 * torch.finfo(build_dtype).eps)
+        check = self._check_points(64 * self.d, build_dtype)
+        exact_check = self._exact_channels(check, self.builder)
+        n, error = int(min_nodes), math.inf
+        while True:
+            self.table = ChebyshevTable(self._node_values(n), self.low, self.high, self.dtype, self.device)
+            error = self._relative_error(check, exact_check)
+            if error <= tol or 2 * n > int(max_nodes) or (2 * n) ** self.d > int(max_table_points):
+                break
+            n *= 2
+        node_mass = self.table.coef64.new_tensor(self._last_nodes[..., : len(self.pairs)])
+        if self.d == 1 and not bool((node_mass > 0).all()):
+            raise ValueError(f"M̃ is not positive on the table box {self.low}..{self.high} (φ is not an immersion "
+                             "there); use dynamics=lagrangian or a smaller dynamics.margin")
+        if self.d == 1:  # the scalar fast path: columns (M̃, Ṽ, ½ ∂M̃/∂q̃, ∂Ṽ/∂q̃), scaled coordinate x = (q̃ − c) / h
+            coef = self.table.coef.reshape(n, 4)
+            self._coef1 = torch.stack([coef[:, 0], coef[:, 1], 0.5 * coef[:, 2], coef[:, 3]], -1)
+            self._center1, self._inv_half1 = float(self.table.center[0]), 1.0 / float(self.table.half[0])
+            self._k1 = self.table.k
+        self.info: dict[str, Any] = {"table_nodes": n, "table_points": n ** self.d, "table_error": error,
+                                     "table_tol": tol, "table_seconds": time.perf_counter() - start,
+                                     "table_low": self.low, "table_high": self.high}
+
+    def __repr__(self) -> str:
+        return (f"TabulatedDynamics(d={self.d}, nodes={self.info['table_nodes']}, "
+                f"error={self.info['table_error']:.1e}, box={self.low}..{self.high})")
+
+    # -- building ------------------------------------------------------------------------------------
+    def _exact_channels(self, q: Tensor, dynamics: ReducedDynamics) -> Tensor:
+        """(B, c) of the exact pullback: the upper triangle of M̃, then Ṽ, then g̃."""
+        out = []
+        zero = torch.zeros_like(q)
+        with torch.no_grad():
+            for i in range(0, q.shape[0], self.chunk):
+                terms = dynamics.terms(q[i:i + self.chunk], zero[i:i + self.chunk])
+                mass = torch.stack([terms.mass[:, a, b] for a, b in self.pairs], -1)
+                out.append(torch.cat([mass, terms.potential[:, None], terms.gravity], -1))
+        return torch.cat(out, 0)
+
+    def _node_values(self, n: int) -> np.ndarray:
+        x = C.chebpts1(n)
+        axes = [lo + (hi - lo) * (x + 1) / 2 for lo, hi in zip(self.low, self.high)]
+        mesh = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, self.d)
+        nodes = torch.as_tensor(mesh, dtype=self.builder.density_weights.dtype, device=self.device)
+        values = self._exact_channels(nodes, self.builder)[:, : len(self.pairs) + 1]
+        self._last_nodes = values.double().cpu().numpy().reshape(*([n] * self.d), -1)
+        return self._last_nodes
+
+    def _check_points(self, count: int, dtype: torch.dtype) -> Tensor:
+        gen = torch.Generator().manual_seed(0)
+        u = torch.rand(count, self.d, generator=gen, dtype=torch.float64)
+        lo, hi = torch.tensor(self.low, dtype=torch.float64), torch.tensor(self.high, dtype=torch.float64)
+        return (lo + (hi - lo) * u).to(dtype).to(self.device)
+
+    def _relative_error(self, q: Tensor, exact: Tensor) -> float:
+        """max over M̃ entries and g̃ of |table − exact| / max|exact| at the check points (in the table's float64)."""
+        m = len(self.pairs)
+        out = self.table.evaluate(q.double(), self.table.coef64)
+        mass_err = (out[:, 0, :m] - exact[:, :m]).abs().max() / exact[:, :m].abs().max().clamp_min(1e-300)
+        grad = out[:, 1:, m]  # ∂Ṽ/∂q_i (B, d)
+        g_exact = exact[:, m + 1:]
+        grad_err = (grad - g_exact).abs().max() / g_exact.abs().max().clamp_min(1e-20)  # a flat Ṽ (|g̃| ≲ 1e-20): absolute
+        return float(max(mass_err, grad_err))
+
+    # -- evaluation ----------------------------------------------------------------------------------
+    def _raw(self, q: Tensor) -> Tensor:
+        """(B, 1 + d, c) from the table (values, then ∂/∂q̃_i), from the exact pullback for rows off the box."""
+        x = self.table.scaled(q)
+        out = self.table.evaluate_scaled(x, self.table.coef)
+        outside = (x.abs() > 1.0).any(-1)
+        self.evaluated_rows += q.shape[0]
+        if bool(outside.any()):
+            rows = outside.nonzero().flatten()
+            self.fallback_rows += int(rows.numel())
+            out = out.index_copy(0, rows, self._exact_parts(q[rows]).to(out))
+        return out
+
+    def _scalar(self, q: Tensor) -> Optional[Tensor]:
+        """d = 1 inside the box: (B, 4) columns (M̃, Ṽ, ½ M̃', Ṽ') in few operations (a rollout's hot path);
+        None if a row is off the box (the caller takes the general path). M̃ > 0 on the box was checked."""
+        x = (q - self._center1) * self._inv_half1
+        if float(x.abs().max()) > 1.0:
+            return None
+        self.evaluated_rows += q.shape[0]
+        return torch.cos(torch.acos(x) * self._k1) @ self._coef1
+
+    def _parts(self, q: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """(M̃ (B, d, d), ∂M̃/∂q̃_k (B, k, d, d), Ṽ (B,), ∂Ṽ/∂q̃ (B, d))."""
+        out = self._raw(q)
+        m = len(self.pairs)
+        full = out[:, :, self.symmetric_index].reshape(*out.shape[:2], self.d, self.d)
+        return full[:, 0], full[:, 1:], out[:, 0, m], out[:, 1:, m]
+
+    def _exact_parts(self, q: Tensor) -> Tensor:
+        """The table's layout (B, 1 + d, c) from the exact pullback, ∂M̃/∂q̃ by forward-mode differentiation."""
+        from torch.func import jvp
+
+        m = len(self.pairs)
+        eye = torch.eye(self.d, dtype=q.dtype, device=q.device)
+
+        def mass_entries(x: Tensor) -> Tensor:
+            mass = self.exact.mass_matrix(x)
+            return torch.stack([mass[:, a, b] for a, b in self.pairs], -1)
+
+        with torch.enable_grad():
+            derivs = [jvp(mass_entries, (q,), (eye[k].expand_as(q),))[1] for k in range(self.d)]
+        exact = self._exact_channels(q, self.exact)
+        value = exact[:, : m + 1]
+        rows = [torch.cat([derivs[k], exact[:, m + 1 + k: m + 2 + k]], -1) for k in range(self.d)]
+        return torch.stack([value, *rows], 1)
+
+    def _solve(self, mass: Tensor, rhs: Tensor) -> Tensor:
+        """M̃⁻¹ rhs (B, d), NaN where M̃ is singular (a division for d = 1)."""
+        if self.d == 1:
+            m = mass[:, :, 0]
+            return torch.where(m > 0, rhs / m, torch.full_like(rhs, float("nan")))
+        return solve_mass(mass, rhs)
+
+    def mass_matrix(self, q: Tensor) -> Tensor:
+        return self._parts(q)[0]
+
+    def potential_energy(self, q: Tensor) -> Tensor:
+        return self._parts(q)[2]
+
+    def momentum(self, q: Tensor, v: Tensor) -> Tensor:
+        return torch.einsum("bij,bj->bi", self.mass_matrix(q), v)
+
+    def velocity(self, q: Tensor, p: Tensor) -> Tensor:
+        return self._solve(self.mass_matrix(q), p)
+
+    def acceleration(self, q: Tensor, v: Tensor, t: float = 0.0) -> Tensor:
+        """q̃̈ = M̃⁻¹(−c̃ − g̃), c̃_i = Σ_jk (∂_k M̃_ij − ½ ∂_i M̃_jk) q̃̇_j q̃̇_k (B, d)."""
+        if self.d == 1:  # q̃̈ = −(½ M̃' q̃̇² + Ṽ') / M̃
+            cols = self._scalar(q)
+            if cols is not None:
+                return -torch.addcmul(cols[:, 3:], cols[:, 2:3], v * v) / cols[:, :1]
+            out = self._raw(q)
+            return self._solve(out[:, :1, :1], -0.5 * out[:, 1, :1] * v * v - out[:, 1, 1:])
+        mass, dmass, _, grad = self._parts(q)
+        dm_v = torch.einsum("bkij,bj->bik", dmass, v)  # Σ_j ∂_k M̃_ij v_j
+        coriolis = torch.einsum("bik,bk->bi", dm_v, v) - 0.5 * torch.einsum("bijk,bj,bk->bi", dmass, v, v)
+        return self._solve(mass, -coriolis - grad)
+
+    def hamiltonian_derivatives(self, q: Tensor, p: Tensor, t: float = 0.0) -> tuple[Tensor, Tensor]:
+        """(q̃̇ = M̃⁻¹p̃, −∂H/∂q̃ = ½ q̃̇ᵀ ∂_k M̃ q̃̇ − ∂_k Ṽ) (B, d) each."""
+        if self.d == 1:
+            cols = self._scalar(q)
+            if cols is not None:
+                v = p / cols[:, :1]
+                return v, torch.addcmul(-cols[:, 3:], cols[:, 2:3], v * v)
+            out = self._raw(q)
+            v = self._solve(out[:, :1, :1], p)
+            return v, 0.5 * out[:, 1, :1] * v * v - out[:, 1, 1:]
+        mass, dmass, _, grad = self._parts(q)
+        v = self._solve(mass, p)
+        return v, 0.5 * torch.einsum("bkij,bi,bj->bk", dmass, v, v) - grad
+
+    def energies(self, q: Tensor, v: Tensor) -> tuple[Tensor, Tensor]:
+        """(T̃, Ṽ) of the tabulated system, each (...,) for q̃, q̃̇ (..., d)."""
+        shape = q.shape[:-1]
+        q2, v2 = q.reshape(-1, self.d), v.reshape(-1, self.d)
+        mass, _, potential, _ = self._parts(q2)
+        kinetic = 0.5 * torch.einsum("bi,bij,bj->b", v2, mass, v2)
+        return kinetic.reshape(shape), potential.reshape(shape)

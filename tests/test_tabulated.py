@@ -1,0 +1,109 @@
+"""Tabulated reduced dynamics (lnf/tabulated.py): Chebyshev tables of M̃ and Ṽ against the exact pullback."""
+import numpy as np
+import pytest
+import torch
+
+from lnf.integrators import get_integrator
+from lnf.tabulated import ChebyshevTable, TabulatedDynamics
+from test_dynamics import _nonlinear_setup, _pendulum_dynamics
+
+
+def test_chebyshev_table_reproduces_a_smooth_function_and_its_derivatives():
+    low, high = [-1.0, 0.5], [2.0, 1.5]
+    n = 24
+    x = np.polynomial.chebyshev.chebpts1(n)
+    axes = [lo + (hi - lo) * (x + 1) / 2 for lo, hi in zip(low, high)]
+    a, b = np.meshgrid(*axes, indexing="ij")
+    f = np.stack([np.sin(a) * np.cos(2 * b), a**2 + b], -1)
+    table = ChebyshevTable(f, low, high)
+    q = torch.tensor([[0.3, 0.7], [-0.9, 1.4], [1.9, 0.6]], dtype=torch.float64)
+    out = table(q)
+    q1, q2 = q[:, 0], q[:, 1]
+    torch.testing.assert_close(out[:, 0, 0], torch.sin(q1) * torch.cos(2 * q2), atol=1e-10, rtol=0)
+    torch.testing.assert_close(out[:, 0, 1], q1**2 + q2, atol=1e-10, rtol=0)
+    torch.testing.assert_close(out[:, 1, 0], torch.cos(q1) * torch.cos(2 * q2), atol=1e-8, rtol=0)
+    torch.testing.assert_close(out[:, 2, 0], -2 * torch.sin(q1) * torch.sin(2 * q2), atol=1e-8, rtol=0)
+    torch.testing.assert_close(out[:, 1, 1], 2 * q1, atol=1e-8, rtol=0)
+    torch.testing.assert_close(out[:, 2, 1], torch.ones_like(q1), atol=1e-8, rtol=0)
+
+
+def test_chebyshev_table_rejects_a_bad_box():
+    with pytest.raises(ValueError, match="high > low"):
+        ChebyshevTable(np.zeros((4, 1)), [1.0], [1.0])
+
+
+def test_tabulated_matches_the_exact_nonlinear_pullback_in_2d():
+    _, exact, _ = _nonlinear_setup()
+    tab = TabulatedDynamics(exact, [-1.0, -1.0], [1.5, 1.0], tol=1e-10)
+    assert tab.info["table_error"] <= 1e-10 and tab.info["table_nodes"] <= 64
+    q = torch.tensor([[0.3, -0.7], [1.1, 0.2], [-0.5, 0.9]], dtype=torch.float64)
+    v = torch.tensor([[0.5, 1.5], [-2.0, 0.7], [0.1, -0.3]], dtype=torch.float64)
+    torch.testing.assert_close(tab.acceleration(q, v), exact.acceleration(q, v), atol=1e-8, rtol=1e-8)
+    for a, b in zip(tab.hamiltonian_derivatives(q, v), exact.hamiltonian_derivatives(q, v)):
+        torch.testing.assert_close(a, b, atol=1e-8, rtol=1e-8)
+    for a, b in zip(tab.energies(q, v), exact.energies(q, v)):
+        torch.testing.assert_close(a, b, atol=1e-9, rtol=1e-9)
+    assert tab.fallback_rows == 0
+
+
+def test_rows_off_the_box_use_the_exact_pullback():
+    _, exact, _ = _nonlinear_setup()
+    tab = TabulatedDynamics(exact, [-0.2, -0.2], [0.2, 0.2])
+    q = torch.tensor([[0.1, 0.0], [1.1, 0.2], [-0.5, 0.9]], dtype=torch.float64)
+    v = torch.tensor([[0.5, 1.5], [-2.0, 0.7], [0.1, -0.3]], dtype=torch.float64)
+    torch.testing.assert_close(tab.acceleration(q, v), exact.acceleration(q, v), atol=1e-8, rtol=1e-8)
+    torch.testing.assert_close(tab.mass_matrix(q), exact.mass_matrix(q), atol=1e-9, rtol=1e-9)
+    assert tab.fallback_rows == 4  # two rows, in two calls
+
+
+def test_tabulated_pendulum_rollout_follows_the_exact_one_and_conserves_its_energy(pendulum):
+    exact = _pendulum_dynamics(pendulum)
+    tab = TabulatedDynamics(exact, [-2.0], [2.0])
+    q0 = torch.tensor([[1.2], [-0.4], [0.1]], dtype=torch.float64)
+    v0 = torch.tensor([[0.5], [-1.0], [0.9]], dtype=torch.float64)
+    midpoint = {"name": "implicit_midpoint", "order": 4}
+    a = get_integrator(midpoint).integrate(tab, q0, v0, 0.05, 400)
+    b = get_integrator(midpoint).integrate(exact, q0, v0, 0.05, 400)
+    assert (a.q - b.q).abs().max() < 1e-6
+    drift = [(E - E[:, :1]).abs().max() for E in (sum(tab.energies(a.q, a.v)), sum(exact.energies(b.q, b.v)))]
+    assert drift[0] < 1e-4 * 6.4 and drift[0] < 1.01 * drift[1] + 1e-9  # the integrator's, not the table's
+
+
+def test_tabulated_refuses_forced_scenes_unbounded_boxes_and_large_tables():
+    _, exact, _ = _nonlinear_setup()
+    with pytest.raises(ValueError, match="finite"):
+        TabulatedDynamics(exact, [float("nan"), 0.0], [1.0, 1.0])
+    with pytest.raises(ValueError, match="max_table_points"):
+        TabulatedDynamics(exact, [0.0, 0.0], [1.0, 1.0], min_nodes=300, max_nodes=400)
+    exact.force_fn = object()  # a scene with damping / loads
+    with pytest.raises(ValueError, match="conservative"):
+        TabulatedDynamics(exact, [0.0, 0.0], [1.0, 1.0])
+
+
+def test_model_tracks_training_codes_and_tabulates_on_their_range(pendulum, tmp_path):
+    from lnf.model import LagrangianNeuralField, load
+
+    model = LagrangianNeuralField(pendulum, width=16, hyper_width=8)
+    model.set_tabulation({"margin": 0.5})
+    with pytest.raises(ValueError, match="range of the training codes"):
+        model.dynamics()
+    model.track_code_range(torch.tensor([[0.2], [-0.1]]), reset=True)
+    model.track_code_range(torch.tensor([[0.4]]))
+    assert model.code_low.item() == pytest.approx(-0.1) and model.code_high.item() == pytest.approx(0.4)
+    dyn = model.dynamics()
+    assert isinstance(dyn, TabulatedDynamics) and model.dynamics() is dyn  # cached
+    assert dyn.low[0] == pytest.approx(-0.35) and dyn.high[0] == pytest.approx(0.65)
+    q = torch.tensor([[0.0], [0.3]])
+    v = torch.tensor([[1.0], [-0.5]])
+    exact = model.lagrangian_dynamics()
+    torch.testing.assert_close(dyn.acceleration(q, v), exact.acceleration(q, v), atol=1e-4, rtol=1e-4)
+    with torch.no_grad():
+        model.field.hyper[-1].bias.add_(0.01)
+    assert model.dynamics() is not dyn  # parameters changed: rebuilt
+    with pytest.raises(ValueError, match="unknown keys"):
+        model.set_tabulation({"nodes": 3})
+    # a state dict without the range (older checkpoints) loads with an unknown range
+    state = {k: v for k, v in model.state_dict().items() if not k.startswith("code_")}
+    fresh = LagrangianNeuralField(pendulum, width=16, hyper_width=8)
+    fresh.load_state_dict(state)
+    assert torch.isnan(fresh.code_low).all()
