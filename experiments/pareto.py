@@ -192,6 +192,13 @@ def plot(study: S.Study, rows: list[dict]) -> list[Path]:
         front = S.pareto_mask(x, y)
         order = np.argsort(x[front])
         ax.step(x[front][order], y[front][order], where="post", color="k", lw=1, ls="--", label="Pareto front", zorder=2)
+        for m in ("lnf", "latent_mlp"):  # each method's own front: the acceptance compares these two
+            sel = np.array([S.method_of(r) == m for r in pts])
+            if sel.any():
+                own = S.pareto_mask(np.where(sel, x, np.nan), np.where(sel, y, np.nan))
+                order = np.argsort(x[own])
+                ax.step(x[own][order], y[own][order], where="post", color=S.COLORS[m], lw=0.8, ls=":", zorder=2,
+                        label=f"front of {S.LABELS[m]}")
         ax.set_xscale("log")
         ax.set_yscale("log")
         ax.set_xlabel(xlabel, fontsize=8)

@@ -156,8 +156,7 @@ class TabulatedDynamics:
             if error <= tol or 2 * n > int(max_nodes) or (2 * n) ** self.d > int(max_table_points):
                 break
             n *= 2
-        node_mass = self.table.coef64.new_tensor(self._last_nodes[..., : len(self.pairs)])
-        if self.d == 1 and not bool((node_mass > 0).all()):
+        if self.d == 1 and not (self._last_nodes[..., 0] > 0).all():  # M̃ at the nodes
             raise ValueError(f"M̃ is not positive on the table box {self.low}..{self.high} (φ is not an immersion "
                              "there); use dynamics=lagrangian or a smaller dynamics.margin")
         if self.d == 1:  # the scalar fast path: columns (M̃, Ṽ, ½ ∂M̃/∂q̃, ∂Ṽ/∂q̃), scaled coordinate x = (q̃ − c) / h
