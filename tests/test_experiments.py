@@ -161,8 +161,9 @@ def test_scenes_script_measures_a_tiny_checkpoint(scene, tmp_path):
 
 def test_elastic_diagnostics_smoke(tmp_path):
     """Content of both releases on a tiny mesh, and the energy and gradient comparison of a tiny checkpoint."""
-    out = _run(["experiments/elastic_diagnostics.py", "--content", "--runs", "2", "--mesh", "6", "3"]).stdout
+    out = _run(["experiments/elastic_diagnostics.py", "--content", "--oracle", "--runs", "2", "--mesh", "6", "3"]).stdout
     assert "release = 'shape'" in out and "release = 'modal'" in out and "cubic 2-D manifold" in out
+    assert "oracle d = 1 reduction" in out and "rollout error in the horizon, median" in out
     run = tmp_path / "run"
     _run(["-m", "lnf.train", "+experiment=elastic", "trainer=smoke", "logger=csv", "scene.mesh=[6,3]",
           "data.n_train=2", "data.n_val=1", "data.n_test=1", "data.n_times=8", "data.train_times=4",
