@@ -113,6 +113,11 @@ class ReducedDynamics:
         force = self._force(t, jet, v) if self.force_fn is not None else None
         return DynamicsTerms(self._mass(jet), coriolis, self._gravity(jet), potential, kinetic_gradient, force)
 
+    def static_terms(self, q: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """(M̃ (B, d, d), Ṽ (B,), g̃ (B, d)): the velocity-free terms, from one first-order jet (no H)."""
+        jet = self._jet(q, order=1)
+        return self._mass(jet), self.potential_fn(jet.value, jet.G), self._gravity(jet)
+
     def acceleration(self, q: Tensor, v: Tensor, t: float = 0.0) -> Tensor:
         """q̃̈ = M̃⁻¹ (−c̃ − g̃ + τ̃) (B, d)."""
         terms = self.terms(q, v, t)

@@ -105,8 +105,8 @@ def evaluate_rollouts(
     counts0 = (getattr(dynamics, "fallback_rows", 0), getattr(dynamics, "evaluated_rows", 0))
     start = time.perf_counter()
     controls = trajectory_controls(scene, states[:, 0], q0)
-    traj = model.rollout(q0, v0, dt=dt, steps=T - 1, integrator=integ, quadrature=quadrature, on_divergence="mark",
-                         controls=controls)
+    traj = model.rollout(q0, v0, dt=dt, steps=T - 1, integrator=integ, on_divergence="mark", controls=controls,
+                         dynamics=dynamics)
     rollout_seconds = time.perf_counter() - start
     if "table_nodes" in table_info:  # share of the rollout's evaluations that left the table's box (exact there)
         table_info["table_fallback_fraction"] = (dynamics.fallback_rows - counts0[0]) / max(

@@ -117,12 +117,13 @@ class ReducedModel(nn.Module):
     def rollout(self, q0: Tensor, v0: Tensor, dt: float, steps: int,
                 integrator: "str | Integrator | dict" = "implicit_midpoint", record_every: int = 1,
                 quadrature: "Quadrature | QuadratureRule | None" = None,
-                on_divergence: str = "raise", controls: Optional[Tensor] = None) -> Trajectory:
+                on_divergence: str = "raise", controls: Optional[Tensor] = None, dynamics: Any = None) -> Trajectory:
         """Integrate the reduced dynamics from (q̃0, q̃̇0) (B, d) for `steps` steps of `dt` [s].
 
         `controls` (B, c): per-trajectory load parameters of a forced scene (:meth:`Scene.controls`).
+        `dynamics`: what :meth:`dynamics` (`quadrature`) returned, if the caller already built it.
         """
-        dynamics = self.dynamics(quadrature)
+        dynamics = self.dynamics(quadrature) if dynamics is None else dynamics
         if controls is not None:
             if not hasattr(dynamics, "controls"):
                 raise ValueError(f"{type(dynamics).__name__} takes no external loads, but controls were given")

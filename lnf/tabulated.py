@@ -176,12 +176,11 @@ class TabulatedDynamics:
     def _exact_channels(self, q: Tensor, dynamics: ReducedDynamics) -> Tensor:
         """(B, c) of the exact pullback: the upper triangle of M̃, then Ṽ, then g̃."""
         out = []
-        zero = torch.zeros_like(q)
         with torch.no_grad():
             for i in range(0, q.shape[0], self.chunk):
-                terms = dynamics.terms(q[i:i + self.chunk], zero[i:i + self.chunk])
-                mass = torch.stack([terms.mass[:, a, b] for a, b in self.pairs], -1)
-                out.append(torch.cat([mass, terms.potential[:, None], terms.gravity], -1))
+                mass, potential, gravity = dynamics.static_terms(q[i:i + self.chunk])
+                mass = torch.stack([mass[:, a, b] for a, b in self.pairs], -1)
+                out.append(torch.cat([mass, potential[:, None], gravity], -1))
         return torch.cat(out, 0)
 
     def _node_values(self, n: int) -> np.ndarray:
@@ -229,6 +228,8 @@ class TabulatedDynamics:
         if float(x.abs().max()) > 1.0:
             return None
         self.evaluated_rows += q.shape[0]
+        # the basis of ChebyshevTable.evaluate_scaled without its clamp and reshapes: x is inside [−1, 1] here,
+        # and this runs several times per step (through evaluate_scaled it measured 32 µs instead of 23 µs)
         return torch.cos(torch.acos(x) * self._k1) @ self._coef1
 
     def _parts(self, q: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:

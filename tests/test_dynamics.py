@@ -147,3 +147,12 @@ def test_field_gradient_potential_uses_mixed_derivatives():
     g = dyn.terms(q, torch.zeros_like(q)).gravity
     ref = torch.autograd.functional.jacobian(lambda x: dyn.potential_energy(x[None])[0], q[0])
     torch.testing.assert_close(g[0], ref)
+
+
+def test_static_terms_are_those_of_the_full_terms():
+    """M̃, Ṽ, g̃ from the first-order jet equal those of terms() (which also computes H and the velocity terms)."""
+    _, dyn, _ = _nonlinear_setup()
+    q = torch.tensor([[0.3, -0.7], [1.1, 0.2]], dtype=torch.float64)
+    terms = dyn.terms(q, torch.ones_like(q))
+    for a, b in zip(dyn.static_terms(q), (terms.mass, terms.potential, terms.gravity)):
+        torch.testing.assert_close(a, b)

@@ -15,6 +15,15 @@ def model():
                                  clamp=True, quadrature=GaussLegendre([4, 3]))
 
 
+def _assert_term_is_added_and_trains(model, out, key, weighted, points, values):
+    """The loss with the optional term `key` is the loss without it plus `weighted`; it reaches every parameter."""
+    without = model.losses(points, values)
+    assert key not in without
+    torch.testing.assert_close(out["loss"], without["loss"] + weighted)
+    out["loss"].backward()
+    assert all(p.grad is not None for p in model.field.parameters())
+
+
 def test_energy_loss_is_the_scaled_squared_potential_gap_and_trains_the_field(model):
     points = torch.rand(2, 20, 2) * torch.tensor([1.0, 0.4])
     values = 0.01 * torch.randn(2, 20, 2)
@@ -25,11 +34,7 @@ def test_energy_loss_is_the_scaled_squared_potential_gap_and_trains_the_field(mo
     gap = (reduced - target) / model.scene.energy_scale
     expected = torch.where(gap.abs() < 0.1, 0.5 * gap**2, 0.1 * (gap.abs() - 0.05)).mean()
     torch.testing.assert_close(out["energy"], expected)
-    without = model.losses(points, values)
-    assert "energy" not in without
-    torch.testing.assert_close(out["loss"], without["loss"] + 0.5 * expected)
-    out["loss"].backward()
-    assert all(p.grad is not None for p in model.field.parameters())
+    _assert_term_is_added_and_trains(model, out, "energy", 0.5 * expected, points, values)
 
 
 def test_negative_energy_weight_is_named():
@@ -59,10 +64,6 @@ def test_gradient_loss_fits_the_field_gradient(model):
     density = model.scene.density(points)
     expected = (density * (G - target).pow(2).sum((-1, -2))).mean(-1).mean()
     torch.testing.assert_close(out["gradient"], expected)
-    without = model.losses(points, values)
-    assert "gradient" not in without
-    torch.testing.assert_close(out["loss"], without["loss"] + 2.0 * expected)
-    out["loss"].backward()
-    assert all(p.grad is not None for p in model.field.parameters())
+    _assert_term_is_added_and_trains(model, out, "gradient", 2.0 * expected, points, values)
     with pytest.raises(ValueError, match="gradient_weight"):
         LagrangianNeuralField(model.scene, gradient_weight=-1.0)
