@@ -13,6 +13,12 @@ leaves (for the velocity: outside its tangent space).
 kinetic and potential energies T̃, Ṽ along the codes of the true snapshots against the FEM's T and V (a
 right Lagrangian gives the same changes), and the relative error of the velocity gradient ∇_X φ̇ = GJ q̃̇
 against the FEM's on the model's quadrature points, per column of points along X₁ (the clamp is X₁ = 0).
+It then separates the two sources of a wrong reduced frequency:
+- the embedding's curve: the FEM's own Lagrangian pulled back through the learned curve u(q̃) = φ(q̃, nodes)
+  (M and V of the FEM body, no SIREN quadrature), integrated by DOP853 next to the model's own pullback;
+- the curve's tangent at rest: its Rayleigh quotient under the FEM's tangent stiffness K_t (Rayleigh–Ritz: any
+  error in the tangent raises the frequency, by the error's share of the strain energy) against the FEM's
+  first mode, with that error's share of mass and of strain energy and where along X₁ it lies.
 Prints only; every number is measured in the run.
 """
 from __future__ import annotations
@@ -166,6 +172,119 @@ def checkpoint(path: Path, trajectory: int = 0) -> None:
     cols = np.unique(X[:, 0].round(4))
     print("  " + "  ".join(f"{x:.2f}: {np.sqrt((err[m]**2).sum() / (ref[m]**2).sum()):.2f}"
                            for x in cols for m in [X[:, 0].round(4) == x]))
+    if model.latent_dim != 1:
+        print(f"(the curve diagnostics below need d = 1; this model has d = {model.latent_dim})")
+        return
+    model = model.double()
+    with h5py.File(ROOT / model.checkpoint["data"]["path"], "r") as f:
+        coarse = torch.as_tensor(f["grids/coarse"][:]).double()
+        test_fields = torch.as_tensor(f["test/coarse_fields"][:, :train_times]).double()
+        test_states = f["test/states"][:, :train_times]
+    print("the FEM's Lagrangian through the learned curve against the model's own pullback "
+          f"({len(test_states)} test trajectories, DOP853, error at the FEM nodes):")
+    for key, value in embedding_pullback(model, coarse, test_fields, test_states, train_times,
+                                         float(model.checkpoint["data"]["dt"])).items():
+        print(f"  {key}: {value:.4f}")
+    low, high = (float(x) for x in (model.code_low, model.code_high))
+    if not (np.isfinite(low) and np.isfinite(high)):
+        low, high = -1.0, 1.0
+    span = high - low
+    print("Rayleigh–Ritz: the learned tangent at rest against the FEM's first mode:")
+    for key, value in rayleigh_ritz(model, low - 0.3 * span, high + 0.3 * span).items():
+        print(f"  {key}: {value:.4f}")
+
+
+def _equilibrium_code(dyn, low: float, high: float) -> "torch.Tensor":
+    """The code (1, 1) of least pulled-back potential on [low, high] (a d = 1 model's rest state)."""
+    import torch
+
+    grid = torch.linspace(low, high, 801, dtype=torch.float64)[:, None]
+    with torch.no_grad():
+        return grid[int(torch.argmin(dyn.potential_energy(grid)))][None]
+
+
+def rayleigh_ritz(model, low: float, high: float, modes: int = 12) -> dict[str, float]:
+    """The learned curve's tangent t = ∂φ/∂q̃ at rest, on the FEM nodes, against the FEM's first mode φ₁ about
+    the gravity equilibrium: periods 2π/√(tᵀK_t t / tᵀMt), and the error e = t − cφ₁ (M-orthogonal to φ₁)."""
+    import scipy.sparse as sp
+    import scipy.sparse.linalg as spla
+    import torch
+
+    scene = model.scene
+    u_g, mode, K = scene._modal_reference()
+    nodes = torch.as_tensor(scene.mesh.nodes)
+    q0 = _equilibrium_code(model.lagrangian_dynamics(), low, high)
+    h = 1e-5 * max(high - low, 1e-3)
+    with torch.no_grad():
+        t = ((model.decode(q0 + h, nodes) - model.decode(q0 - h, nodes)) / (2 * h))[0].numpy().reshape(-1)
+    m2 = np.repeat(scene.nodal_mass, 2)
+    phi = mode.reshape(-1)
+    c = (m2 * t) @ phi / ((m2 * phi) @ phi)
+    e = t - c * phi
+    energy = e @ (K @ e)
+    free = scene._free
+    k = min(modes, len(free) - 2)
+    values, vectors = spla.eigsh(K[free][:, free].tocsc(), k=k, M=sp.diags(m2[free]).tocsc(), sigma=0, which="LM")
+    low_modes = float(((vectors.T @ (m2[free] * e[free])) ** 2 * values).sum() / energy)
+    columns = np.divmod(np.arange(scene.n_nodes), scene.mesh.ny + 1)[0] * scene.mesh.hx
+    share = np.bincount(np.repeat(columns < 0.2 * scene.length, 2), weights=e * (K @ e), minlength=2)[1] / energy
+    return {"period of the FEM's first mode [s]": 2 * np.pi / np.sqrt(phi @ (K @ phi) / ((m2 * phi) @ phi)),
+            "period of the learned tangent under the FEM's K_t [s]": 2 * np.pi / np.sqrt(t @ (K @ t) / ((m2 * t) @ t)),
+            "tangent error, share of the mass norm": float(np.sqrt((m2 * e) @ e / ((m2 * t) @ t))),
+            "tangent error, share of the strain energy (eᵀK_t e / c²φ₁ᵀK_tφ₁)": float(energy / (c**2 * phi @ (K @ phi))),
+            f"  of which outside the first {k} modes": 1 - low_modes,
+            "  of which in X₁ < L/5 (next to the clamp)": float(share)}
+
+
+def embedding_pullback(model, points, fields, states, train_times: int, dt: float) -> dict[str, float]:
+    """The FEM Lagrangian pulled back through the learned curve against the model's own pullback (d = 1), on
+    test trajectories: small-amplitude periods and the DOP853 rollout error over the training horizon
+    (mass-weighted nodal displacement, relative, per trajectory)."""
+    import torch
+    from scipy.integrate import solve_ivp
+    from scipy.interpolate import CubicSpline
+
+    scene = model.scene
+    nodes = torch.as_tensor(scene.mesh.nodes)
+    with torch.no_grad():
+        codes = torch.stack([model.reduce(points, f[:train_times]) for f in fields])  # (n, T, 1)
+    low, high = float(codes.min()), float(codes.max())
+    span = max(high - low, 1e-3)
+    grid = torch.linspace(low - 0.3 * span, high + 0.3 * span, 401, dtype=torch.float64)[:, None]
+    h = 1e-4 * span
+    with torch.no_grad():
+        U = model.decode(grid, nodes).numpy()
+        dU = ((model.decode(grid + h, nodes) - model.decode(grid - h, nodes)) / (2 * h)).numpy()
+        mass, potential, _ = model.lagrangian_dynamics().static_terms(grid)
+    m = scene.nodal_mass
+    g = grid[:, 0].numpy()
+    lagrangians = {"FEM through φ": (np.einsum("n,bnk,bnk->b", m, dU, dU),
+                                      scene.mesh.strain_energy(U, scene.lam, scene.mu) + scene.gravity * (m * U[..., 1]).sum(-1)),
+                   "model": (mass[:, 0, 0].numpy(), potential.numpy())}
+    u_true, v_true, _ = scene.unpack(states[:, :train_times])
+    w = np.sqrt(m)[:, None]
+    times = np.arange(train_times) * dt
+    out: dict[str, float] = {}
+    for name, (M, V) in lagrangians.items():
+        sM, sV = CubicSpline(g, M), CubicSpline(g, V)
+        rest = int(np.argmin(V))
+        out[f"{name}: small-amplitude period [s]"] = 2 * np.pi * np.sqrt(M[rest] / sV(g[rest], 2))
+        errors = []
+        for i in range(len(fields)):
+            q0 = float(codes[i, 0, 0])
+            tangent = dU[np.argmin(np.abs(g - q0))]
+            qdot0 = float(np.einsum("n,nk,nk->", m, tangent, v_true[i, 0]) / np.einsum("n,nk,nk->", m, tangent, tangent))
+            sol = solve_ivp(lambda _, y: [y[1], -(0.5 * sM(y[0], 1) * y[1] ** 2 + sV(y[0], 1)) / sM(y[0])],
+                            (0, times[-1]), [q0, qdot0], t_eval=times, method="DOP853", rtol=1e-10, atol=1e-12)
+            with torch.no_grad():
+                pred = model.decode(torch.as_tensor(sol.y[0])[:, None], nodes).numpy()
+            errors.append(np.linalg.norm(w * (pred - u_true[i])) / np.linalg.norm(w * u_true[i]))
+        out[f"{name}: rollout error in the horizon, median"] = float(np.median(errors))
+    with torch.no_grad():
+        proj = torch.stack([model.decode(c, nodes) for c in codes]).numpy()
+    out["projection onto the curve, median"] = float(np.median(
+        [np.linalg.norm(w * (proj[i] - u_true[i])) / np.linalg.norm(w * u_true[i]) for i in range(len(fields))]))
+    return out
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -160,7 +160,8 @@ def test_scenes_script_measures_a_tiny_checkpoint(scene, tmp_path):
 
 
 def test_elastic_diagnostics_smoke(tmp_path):
-    """Content of both releases on a tiny mesh, and the energy and gradient comparison of a tiny checkpoint."""
+    """Content of both releases on a tiny mesh, and the energy, gradient, curve and tangent diagnostics of a tiny
+    checkpoint."""
     out = _run(["experiments/elastic_diagnostics.py", "--content", "--oracle", "--runs", "2", "--mesh", "6", "3"]).stdout
     assert "release = 'shape'" in out and "release = 'modal'" in out and "cubic 2-D manifold" in out
     assert "oracle d = 1 reduction" in out and "rollout error in the horizon, median" in out
@@ -173,6 +174,8 @@ def test_elastic_diagnostics_smoke(tmp_path):
     assert "train/gradient" in json.loads((run / "metrics.json").read_text())  # the FEM's ∇_X u reached the loss
     out = _run(["experiments/elastic_diagnostics.py", "--ckpt", str(run / "checkpoints" / "last.ckpt")]).stdout
     assert "T_FEM" in out and "velocity-gradient relative error" in out
+    assert "FEM through φ: small-amplitude period" in out and "model: rollout error in the horizon" in out
+    assert "period of the learned tangent under the FEM's K_t" in out
 
 
 def test_streaming_benchmark_smoke(tmp_path):
@@ -202,3 +205,37 @@ def test_baselines_drop_the_neural_settings_of_a_scene_experiment():
     assert not any(o.startswith("~") for o in study.method("lnf"))
     pendulum = S.Study(name="x", scene="pendulum", mode="reduced", out=ROOT / "outputs" / "unused", threads=1)
     assert not any(o.startswith("~") for o in pendulum.method("pod"))
+
+
+def test_rayleigh_ritz_of_the_exact_mode():
+    """A curve whose tangent at rest is the FEM's first mode has the FEM's period and no tangent error; adding a
+    stiff (axial) component to the tangent shortens the period, as Rayleigh–Ritz says it must."""
+    import numpy as np
+    import torch
+
+    sys.path.insert(0, str(ROOT / "experiments"))
+    from elastic_diagnostics import rayleigh_ritz
+
+    from lnf.scenes.elastic import ElasticCantilever
+
+    scene = ElasticCantilever(mesh=(8, 4), release="modal")
+    u_g, mode, _ = scene._modal_reference()
+    axial = np.stack([scene.mesh.nodes[:, 0] ** 2, 0 * scene.mesh.nodes[:, 0]], -1)  # u₁ ∝ X₁²: pure stretching
+
+    class Curve:  # u(q) = u_g + q (φ₁ + ε a), rest at q = 0
+        def __init__(self, eps: float) -> None:
+            self.scene, self.tangent = scene, torch.as_tensor(mode + eps * axial)
+
+        def decode(self, q, nodes):
+            return torch.as_tensor(u_g)[None] + q[:, :, None] * self.tangent[None]
+
+        def lagrangian_dynamics(self):
+            return type("Dyn", (), {"potential_energy": staticmethod(lambda q: q[:, 0] ** 2)})()
+
+    exact = rayleigh_ritz(Curve(0.0), -1.0, 1.0)
+    first, learned = exact["period of the FEM's first mode [s]"], exact["period of the learned tangent under the FEM's K_t [s]"]
+    assert learned == pytest.approx(first, rel=1e-6)
+    assert exact["tangent error, share of the mass norm"] < 1e-6
+    stiff = rayleigh_ritz(Curve(0.05), -1.0, 1.0)
+    assert stiff["period of the learned tangent under the FEM's K_t [s]"] < 0.99 * first
+    assert stiff["tangent error, share of the strain energy (eᵀK_t e / c²φ₁ᵀK_tφ₁)"] > 0.01
