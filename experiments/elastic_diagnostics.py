@@ -214,9 +214,8 @@ def rayleigh_ritz(model, low: float, high: float, modes: int = 12) -> dict[str, 
     u_g, mode, K = scene._modal_reference()
     nodes = torch.as_tensor(scene.mesh.nodes)
     q0 = _equilibrium_code(model.lagrangian_dynamics(), low, high)
-    h = 1e-5 * max(high - low, 1e-3)
     with torch.no_grad():
-        t = ((model.decode(q0 + h, nodes) - model.decode(q0 - h, nodes)) / (2 * h))[0].numpy().reshape(-1)
+        t = model.field.jet(q0, nodes, order=1).J[0, ..., 0].numpy().reshape(-1)
     m2 = np.repeat(scene.nodal_mass, 2)
     phi = mode.reshape(-1)
     c = (m2 * t) @ phi / ((m2 * phi) @ phi)
@@ -251,18 +250,20 @@ def embedding_pullback(model, points, fields, states, train_times: int, dt: floa
     low, high = float(codes.min()), float(codes.max())
     span = max(high - low, 1e-3)
     grid = torch.linspace(low - 0.3 * span, high + 0.3 * span, 401, dtype=torch.float64)[:, None]
-    h = 1e-4 * span
     with torch.no_grad():
-        U = model.decode(grid, nodes).numpy()
-        dU = ((model.decode(grid + h, nodes) - model.decode(grid - h, nodes)) / (2 * h)).numpy()
+        jet = model.field.jet(grid, nodes, order=1)
+        U, dU = jet.value.numpy(), jet.J[..., 0].numpy()  # u(q̃), ∂u/∂q̃ at the nodes, (401, nn, 2) each
         mass, potential, _ = model.lagrangian_dynamics().static_terms(grid)
+        tangents = model.field.jet(codes[:, 0], nodes, order=1).J[..., 0].numpy()  # at each start, (n, nn, 2)
     m = scene.nodal_mass
     g = grid[:, 0].numpy()
-    lagrangians = {"FEM through φ": (np.einsum("n,bnk,bnk->b", m, dU, dU),
-                                      scene.mesh.strain_energy(U, scene.lam, scene.mu) + scene.gravity * (m * U[..., 1]).sum(-1)),
+    lagrangians = {"FEM through φ": (np.einsum("n,bnk,bnk->b", m, dU, dU), scene.nodal_potential(U)),
                    "model": (mass[:, 0, 0].numpy(), potential.numpy())}
     u_true, v_true, _ = scene.unpack(states[:, :train_times])
-    w = np.sqrt(m)[:, None]
+
+    def relative_error(pred: np.ndarray, true: np.ndarray) -> float:
+        return float(np.linalg.norm(_mass_weighted(scene, pred - true)) / np.linalg.norm(_mass_weighted(scene, true)))
+
     times = np.arange(train_times) * dt
     out: dict[str, float] = {}
     for name, (M, V) in lagrangians.items():
@@ -271,19 +272,20 @@ def embedding_pullback(model, points, fields, states, train_times: int, dt: floa
         out[f"{name}: small-amplitude period [s]"] = 2 * np.pi * np.sqrt(M[rest] / sV(g[rest], 2))
         errors = []
         for i in range(len(fields)):
-            q0 = float(codes[i, 0, 0])
-            tangent = dU[np.argmin(np.abs(g - q0))]
+            q0, tangent = float(codes[i, 0, 0]), tangents[i]
             qdot0 = float(np.einsum("n,nk,nk->", m, tangent, v_true[i, 0]) / np.einsum("n,nk,nk->", m, tangent, tangent))
             sol = solve_ivp(lambda _, y: [y[1], -(0.5 * sM(y[0], 1) * y[1] ** 2 + sV(y[0], 1)) / sM(y[0])],
                             (0, times[-1]), [q0, qdot0], t_eval=times, method="DOP853", rtol=1e-10, atol=1e-12)
+            if not sol.success:  # the curve's potential does not hold the motion (e.g. an untrained model)
+                errors.append(float("inf"))
+                continue
             with torch.no_grad():
                 pred = model.decode(torch.as_tensor(sol.y[0])[:, None], nodes).numpy()
-            errors.append(np.linalg.norm(w * (pred - u_true[i])) / np.linalg.norm(w * u_true[i]))
+            errors.append(relative_error(pred, u_true[i]))
         out[f"{name}: rollout error in the horizon, median"] = float(np.median(errors))
     with torch.no_grad():
         proj = torch.stack([model.decode(c, nodes) for c in codes]).numpy()
-    out["projection onto the curve, median"] = float(np.median(
-        [np.linalg.norm(w * (proj[i] - u_true[i])) / np.linalg.norm(w * u_true[i]) for i in range(len(fields))]))
+    out["projection onto the curve, median"] = float(np.median([relative_error(p, u) for p, u in zip(proj, u_true)]))
     return out
 
 

@@ -225,9 +225,11 @@ def test_rayleigh_ritz_of_the_exact_mode():
     class Curve:  # u(q) = u_g + q (φ₁ + ε a), rest at q = 0
         def __init__(self, eps: float) -> None:
             self.scene, self.tangent = scene, torch.as_tensor(mode + eps * axial)
+            self.field = self
 
-        def decode(self, q, nodes):
-            return torch.as_tensor(u_g)[None] + q[:, :, None] * self.tangent[None]
+        def jet(self, q, nodes, order):
+            value = torch.as_tensor(u_g)[None] + q[:, :, None] * self.tangent[None]
+            return type("Jet", (), {"value": value, "J": self.tangent[None, ..., None].expand(len(q), -1, -1, 1)})()
 
         def lagrangian_dynamics(self):
             return type("Dyn", (), {"potential_energy": staticmethod(lambda q: q[:, 0] ** 2)})()

@@ -355,10 +355,13 @@ class ElasticCantilever(Scene):
         G = np.stack(parts, -1).transpose(1, 0, 2, 3)  # (B, N, 2a, 2j)
         return G.reshape(*lead, N, 2, 2)
 
+    def nodal_potential(self, u: np.ndarray) -> np.ndarray:
+        """The FEM body's potential V [J/m] (B,): strain energy plus gravity, for nodal displacements u (B, nn, 2)."""
+        return self.mesh.strain_energy(u, self.lam, self.mu) + self.gravity * (self.nodal_mass * u[..., 1]).sum(-1)
+
     def true_energy_parts(self, states: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         u, v, _ = self.unpack(np.asarray(states))
         lead = u.shape[:-2]
         u2, v2 = u.reshape(-1, self.n_nodes, 2), v.reshape(-1, self.n_nodes, 2)
         kinetic = 0.5 * np.einsum("n,bnk,bnk->b", self.nodal_mass, v2, v2)
-        potential = self.mesh.strain_energy(u2, self.lam, self.mu) + self.gravity * (self.nodal_mass * u2[..., 1]).sum(-1)
-        return kinetic.reshape(lead), potential.reshape(lead)
+        return kinetic.reshape(lead), self.nodal_potential(u2).reshape(lead)
