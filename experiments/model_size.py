@@ -40,10 +40,12 @@ def plot(study: S.Study, rows: list[dict], others: list[dict], target: float, ch
 
     fig, (ax, ax2) = plt.subplots(1, 2, figsize=(12, 4.5))
     pod = sorted((r for r in others if r["method"] == "pod"), key=lambda r: int(r["model.latent_dim"]))
-    ax2.plot([int(r["model.latent_dim"]) for r in pod], [float(r[ERR]) for r in pod], marker=S.MARKERS["pod"],
-             color=S.COLORS["pod"], label=S.LABELS["pod"])
+    # diverged runs (inf error) are drawn at 10 and marked ×
+    S.plot_marking_failures(ax2, np.array([int(r["model.latent_dim"]) for r in pod]),
+                            np.array([float(r[ERR]) for r in pod]), np.zeros(len(pod), bool),
+                            marker=S.MARKERS["pod"], color=S.COLORS["pod"], label=S.LABELS["pod"])
     for m in ("latent_mlp", "full_order"):
-        for r in (r for r in others if r["method"] == m):
+        for r in (r for r in others if r["method"] == m and np.isfinite(float(r[ERR]))):
             ax2.axhline(float(r[ERR]), color=S.COLORS[m], ls=":",
                         label=f"{S.LABELS[m]}" + (f" (d = {r['model.latent_dim']}, width {r['model.width']})"
                                                   if m == "latent_mlp" else " (64² grid)"))
@@ -55,10 +57,11 @@ def plot(study: S.Study, rows: list[dict], others: list[dict], target: float, ch
     ax2.set_ylabel("test field_rel_l2 (all), median")
     ax2.grid(True, which="both", alpha=0.3)
     ax2.legend(fontsize=7)
-    ax2.set_title("Baselines at the same target", fontsize=9)
+    ax2.set_title("Baselines at the same target (×: diverged, drawn at 10)", fontsize=9)
     for d in sorted({int(r["model.latent_dim"]) for r in rows}):
         sel = sorted((r for r in rows if int(r["model.latent_dim"]) == d), key=lambda r: int(r["model.width"]))
-        ax.plot([int(r["model.width"]) for r in sel], [float(r[ERR]) for r in sel], marker="o", label=f"latent d = {d}")
+        S.plot_marking_failures(ax, np.array([int(r["model.width"]) for r in sel]), np.array([float(r[ERR]) for r in sel]),
+                                np.zeros(len(sel), bool), marker="o", label=f"latent d = {d}")
     ax.axhline(target, color="k", ls="--", label=f"target {target:g}")
     if chosen:
         ax.scatter([int(chosen["model.width"])], [float(chosen[ERR])], s=250, facecolors="none", edgecolors="r", lw=2,

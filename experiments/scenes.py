@@ -78,6 +78,22 @@ def _figure() -> tuple[Any, Any]:
     return plt.subplots(figsize=(5, 3.4), layout="constrained")
 
 
+def _tip_figure(ev: Any, path: Path, title: str, horizon: float | None = None, n: int = 3) -> Path:
+    """The vertical field value at the free end's mid-point over time, ours (solid) and the FEM's (dotted)."""
+    pts = ev.points
+    tip = int(np.argmin((pts[:, 0] - pts[:, 0].max()) ** 2 + (pts[:, 1] - pts[:, 1].mean()) ** 2))
+    fig, ax = _figure()
+    for i in range(min(n, len(ev.pred_fields))):
+        ax.plot(ev.times, ev.pred_fields[i, :, tip, 1], color=f"C{i}")
+        ax.plot(ev.times, ev.true_fields[i, :, tip, 1], color=f"C{i}", ls=":")
+    if horizon is not None:
+        ax.axvline(horizon, color="k", ls="--", lw=0.8)
+    ax.set_xlabel("t [s]")
+    ax.set_ylabel("tip displacement u₂ [m]")
+    ax.set_title(f"{title}\nsolid: ours, dotted: FEM" + (", dashed: training horizon" if horizon else ""), fontsize=8)
+    return save_figure(fig, path)
+
+
 def pick(metrics: dict[str, float], *keys: str) -> dict[str, float]:
     return {k: float(metrics[k]) for k in keys if k in metrics}
 
@@ -244,6 +260,8 @@ def elastic(model: Any, dm: SnapshotDataModule, out: Path, target: float = 0.05)
     ax.set_xlabel("t [s]")
     ax.set_ylabel("energy / E_scale (solid ours, dotted FEM)")
     save_figure(fig, out / "energy.png")
+    _tip_figure(base, out / "tip.png", f"test trajectories, implicit midpoint, dt = {times[1] - times[0]:g} s",
+                horizon=float(times[split.train_times]))
     return result
 
 
@@ -262,13 +280,16 @@ def elastic_actuated(model: Any, dm: SnapshotDataModule, out: Path) -> dict[str,
     unseen_load = np.tile([[0.5, 1.2]], (len(load), 1))
     unseen = evaluate(model, split, states=scene.simulate(scene.pack(u0, v0, unseen_load), times))
     fig, ax = _figure()
-    for i in range(3):
+    for i in range(min(3, len(pred))):
         ax.plot(times, pred[i] / scene.energy_scale, color=f"C{i}")
         ax.plot(times, true[i] / scene.energy_scale, color=f"C{i}", ls=":")
     ax.set_xlabel("t [s]")
     ax.set_ylabel("energy / E_scale (solid ours, dotted FEM)")
     ax.set_title(f"free decay, α = {scene.damping} 1/s")
     save_figure(fig, out / "decay.png")
+    _tip_figure(unseen, out / "tip_unseen_load.png",
+                f"a 1.2 Hz load not seen in training (0.3–0.7 Hz), dt = {times[1] - times[0]:g} s",
+                horizon=float(times[split.train_times]))
     rise = np.max(np.diff(pred, axis=1), axis=1) / scene.energy_scale
     keys = ("field_rel_l2/all/median", "field_rel_l2/all/max", "field_rel_l2/in_horizon/median",
             "field_rel_l2/extrapolation/median", "energy_rel_err/median", "diverged_fraction")

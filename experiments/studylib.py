@@ -32,8 +32,9 @@ ROOT = Path(__file__).resolve().parents[1]
 METHODS: dict[str, list[str]] = {
     "lnf": [],
     "latent_mlp": ["dynamics=latent_mlp"],
-    "pod": ["model=pod"],
-    "full_order": ["model=full_order"],
+    # the exact pullback: a scene experiment may choose dynamics=tabulated, which needs a neural field's codes
+    "pod": ["model=pod", "dynamics=lagrangian"],
+    "full_order": ["model=full_order", "dynamics=lagrangian"],
 }
 LABELS = {"lnf": "LNF (ours)", "latent_mlp": "black-box latent MLP", "pod": "POD-Galerkin", "full_order": "full order"}
 COLORS = {"lnf": "tab:blue", "latent_mlp": "tab:red", "pod": "tab:green", "full_order": "tab:gray"}

@@ -28,8 +28,9 @@ def check_config(cfg: DictConfig) -> None:
     dynamics = cfg.get("dynamics")
     if dynamics is not None and not str(dynamics.get("_target_", "")).endswith("ReducedDynamics") \
             and not str(model.get("_target_", "")).endswith("LagrangianNeuralField"):
-        raise ValueError(f"dynamics={dynamics._target_} (learned latent dynamics) needs model=lnf (a neural field "
-                         f"with codes to learn on), got model={model.get('_target_')}")
+        raise ValueError(f"dynamics={dynamics._target_} (learned or tabulated latent dynamics) needs model=lnf "
+                         f"(a neural field with codes to learn or tabulate on), got model={model.get('_target_')}; "
+                         f"use dynamics=lagrangian with this model")
     missing = {f"{k}.{m}" for k, v in cfg.items() if k != "hydra" and OmegaConf.is_config(v)
                for m in OmegaConf.missing_keys(v)}
     if missing:
