@@ -145,6 +145,10 @@ def checkpoint(path: Path, trajectory: int = 0) -> None:
         velocities = torch.as_tensor(f["test/velocities"][trajectory])
         states = f["test/states"][trajectory]
         train_times = int(model.checkpoint["data"]["train_times"])
+        # for the curve diagnostics: every test trajectory over the training horizon, on the coarse grid
+        coarse = torch.as_tensor(f["grids/coarse"][:]).double()
+        test_fields = torch.as_tensor(f["test/coarse_fields"][:, :train_times]).double()
+        test_states = f["test/states"][:, :train_times]
     with torch.no_grad():
         q = model.reduce(points, fields)
         qdot = model.project_velocity(q, points, velocities)
@@ -176,10 +180,6 @@ def checkpoint(path: Path, trajectory: int = 0) -> None:
         print(f"(the curve diagnostics below need d = 1; this model has d = {model.latent_dim})")
         return
     model = model.double()
-    with h5py.File(ROOT / model.checkpoint["data"]["path"], "r") as f:
-        coarse = torch.as_tensor(f["grids/coarse"][:]).double()
-        test_fields = torch.as_tensor(f["test/coarse_fields"][:, :train_times]).double()
-        test_states = f["test/states"][:, :train_times]
     print("the FEM's Lagrangian through the learned curve against the model's own pullback "
           f"({len(test_states)} test trajectories, DOP853, error at the FEM nodes):")
     for key, value in embedding_pullback(model, coarse, test_fields, test_states, train_times,

@@ -78,20 +78,27 @@ def _figure() -> tuple[Any, Any]:
     return plt.subplots(figsize=(5, 3.4), layout="constrained")
 
 
-def _tip_figure(ev: Any, path: Path, title: str, horizon: float | None = None, n: int = 3) -> Path:
-    """The vertical field value at the free end's mid-point over time, ours (solid) and the FEM's (dotted)."""
-    pts = ev.points
-    tip = int(np.argmin((pts[:, 0] - pts[:, 0].max()) ** 2 + (pts[:, 1] - pts[:, 1].mean()) ** 2))
+def _ours_against_fem(times: np.ndarray, ours: np.ndarray, fem: np.ndarray, ylabel: str, title: str, path: Path,
+                      horizon: float | None = None, n: int = 3) -> Path:
+    """One quantity (n_traj, T) over time for the first `n` trajectories, ours (solid) and the FEM's (dotted)."""
     fig, ax = _figure()
-    for i in range(min(n, len(ev.pred_fields))):
-        ax.plot(ev.times, ev.pred_fields[i, :, tip, 1], color=f"C{i}")
-        ax.plot(ev.times, ev.true_fields[i, :, tip, 1], color=f"C{i}", ls=":")
+    for i in range(min(n, len(ours))):
+        ax.plot(times, ours[i], color=f"C{i}")
+        ax.plot(times, fem[i], color=f"C{i}", ls=":")
     if horizon is not None:
         ax.axvline(horizon, color="k", ls="--", lw=0.8)
     ax.set_xlabel("t [s]")
-    ax.set_ylabel("tip displacement u₂ [m]")
+    ax.set_ylabel(ylabel)
     ax.set_title(f"{title}\nsolid: ours, dotted: FEM" + (", dashed: training horizon" if horizon else ""), fontsize=8)
     return save_figure(fig, path)
+
+
+def _tip_figure(ev: Any, path: Path, title: str, horizon: float | None = None) -> Path:
+    """The vertical displacement at the free end's mid-point over time, ours against the FEM's."""
+    pts = ev.points
+    tip = int(np.argmin((pts[:, 0] - pts[:, 0].max()) ** 2 + (pts[:, 1] - pts[:, 1].mean()) ** 2))
+    return _ours_against_fem(ev.times, ev.pred_fields[:, :, tip, 1], ev.true_fields[:, :, tip, 1],
+                             "tip displacement u₂ [m]", title, path, horizon)
 
 
 def pick(metrics: dict[str, float], *keys: str) -> dict[str, float]:
@@ -251,17 +258,12 @@ def elastic(model: Any, dm: SnapshotDataModule, out: Path, target: float = 0.05)
                   horizon_s=float(times[in_h][-1]), fom_nodes=scene.n_nodes, fom_mesh=scene.mesh_shape)
     if tabulation is not None:
         result["table"] = {k: v for k, v in model.dynamics().info.items() if not isinstance(v, list)}
-    fig, ax = _figure()
-    e = base.energies
-    for i in range(min(3, len(e["kinetic_pred"]))):
-        ax.plot(times, (e["kinetic_pred"][i] + e["potential_pred"][i]) / scene.energy_scale, color=f"C{i}")
-        ax.plot(times, (e["kinetic_true"][i] + e["potential_true"][i]) / scene.energy_scale, color=f"C{i}", ls=":")
-    ax.axvline(times[split.train_times], color="k", ls="--", lw=0.8)
-    ax.set_xlabel("t [s]")
-    ax.set_ylabel("energy / E_scale (solid ours, dotted FEM)")
-    save_figure(fig, out / "energy.png")
-    _tip_figure(base, out / "tip.png", f"test trajectories, implicit midpoint, dt = {times[1] - times[0]:g} s",
-                horizon=float(times[split.train_times]))
+    e, horizon = base.energies, float(times[split.train_times])
+    title = f"test trajectories, implicit midpoint, dt = {times[1] - times[0]:g} s"
+    _ours_against_fem(times, (e["kinetic_pred"] + e["potential_pred"]) / scene.energy_scale,
+                      (e["kinetic_true"] + e["potential_true"]) / scene.energy_scale, "energy / E_scale", title,
+                      out / "energy.png", horizon)
+    _tip_figure(base, out / "tip.png", title, horizon)
     return result
 
 
@@ -279,14 +281,8 @@ def elastic_actuated(model: Any, dm: SnapshotDataModule, out: Path) -> dict[str,
     # a load outside the training range: frequency 1.2 Hz (training 0.3–0.7 Hz), amplitude 0.5
     unseen_load = np.tile([[0.5, 1.2]], (len(load), 1))
     unseen = evaluate(model, split, states=scene.simulate(scene.pack(u0, v0, unseen_load), times))
-    fig, ax = _figure()
-    for i in range(min(3, len(pred))):
-        ax.plot(times, pred[i] / scene.energy_scale, color=f"C{i}")
-        ax.plot(times, true[i] / scene.energy_scale, color=f"C{i}", ls=":")
-    ax.set_xlabel("t [s]")
-    ax.set_ylabel("energy / E_scale (solid ours, dotted FEM)")
-    ax.set_title(f"free decay, α = {scene.damping} 1/s")
-    save_figure(fig, out / "decay.png")
+    _ours_against_fem(times, pred / scene.energy_scale, true / scene.energy_scale, "energy / E_scale",
+                      f"free decay, α = {scene.damping} 1/s", out / "decay.png")
     _tip_figure(unseen, out / "tip_unseen_load.png",
                 f"a 1.2 Hz load not seen in training (0.3–0.7 Hz), dt = {times[1] - times[0]:g} s",
                 horizon=float(times[split.train_times]))

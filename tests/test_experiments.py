@@ -125,6 +125,7 @@ def test_model_size_plot_draws_diverged_runs(tmp_path):
     others = [{"method": "pod", "model.latent_dim": 1, ERR: 0.5}, {"method": "pod", "model.latent_dim": 2, ERR: float("inf")}]
     assert plot(study, rows, others, 0.1, None).stat().st_size > 0
 
+
 def test_roofline_study_smoke(studies):
     out, stdout = _study("roofline", studies)
     rows = _csv(out / "roofline.csv")
@@ -189,6 +190,7 @@ def test_scenes_script_measures_a_tiny_elastic_checkpoint(scene, tmp_path):
         # a 1-epoch model may diverge (nan); the decay itself is tested in tests/test_elastic.py (damping tests)
         assert "largest_energy_rise_per_sample_over_scale" in result["free_decay"] and (out / "decay.png").is_file()
         assert "field_rel_l2/in_horizon/median" in result["unseen_load"] and (out / "tip_unseen_load.png").is_file()
+
 
 def test_elastic_diagnostics_smoke(tmp_path):
     """Content of both releases on a tiny mesh, and the energy, gradient, curve and tangent diagnostics of a tiny
