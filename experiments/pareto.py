@@ -3,6 +3,7 @@
     python experiments/pareto.py                 # reduced settings (< 30 min on 2 CPU cores)
     python experiments/pareto.py --full          # model sizes up to the default width 256, default training
     python experiments/pareto.py --quadrature-ckpt outputs/pendulum/runs/<run>/checkpoints/last.ckpt
+    python experiments/pareto.py --scene elastic # any conf/experiment/<scene>.yaml: outputs/studies/pareto-<scene>
 
 Hydra multiruns of `python -m lnf.train` (each method across its own size knob: our width, depth, K
 and latent dimension; the black box's field width; POD's number of modes k = 1…8; the full-order grid)
@@ -13,9 +14,15 @@ at dt = 0.1 as well as its trained 0.05. Writes ``pareto.csv``, ``pareto.png`` (
 `field_rel_l2` against the latent rollout's wall-clock per trajectory, against rollout plus decoding on
 the 64×64 test grid, and against training wall-clock; Pareto fronts marked), ``quadrature.png`` and
 ``summary.md`` into outputs/studies/pareto/.
+
+On the other scenes, ours sweeps its width only (their latent dimension is model_size.py's study), methods a
+scene cannot run are left out (studylib.UNSUPPORTED), a scene that trains with the tabulated pullback gets
+the exact one as its variant, and on the elastic scenes the FEM's own cost per trajectory, measured in the
+same run, is drawn as the full-order line.
 """
 from __future__ import annotations
 
+import json
 import sys
 from pathlib import Path
 
@@ -25,7 +32,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import studylib as S  # noqa: E402
 
 ERR = "field_rel_l2/extrapolation/median"
-COST = "cost_seconds"  # rollout + decoding of one trajectory's fields at the data's sample times (see add_cost)
+COST = "cost_seconds"
+# scenes whose ground-truth simulator is itself a full-order discretisation (the FEM), drawn as a cost line;
+# the pendulum scenes' simulators integrate one or two angles, which says nothing about a full-order model
+SIMULATOR_IS_FULL_ORDER = {"elastic", "elastic_actuated"}  # rollout + decoding of one trajectory's fields at the data's sample times (see add_cost)
 
 
 def fill_frames(rows: list[dict]) -> None:
@@ -49,21 +59,30 @@ def add_cost(rows: list[dict], frames: int) -> None:
                 r["frames"])
 
 
+def architecture_knobs(study: S.Study) -> bool:
+    """Whether this study sweeps our depth, K and latent dimension as well as the width: on the pendulum only.
+    The other scenes chart the width sweep (their latent dimension is model_size.py's question), which keeps
+    each scene's study near 30 min on 2 cores."""
+    return study.mode != "smoke" and study.scene == "pendulum"
+
+
 def sweeps(study: S.Study) -> None:
     smoke, full = study.mode == "smoke", study.mode == "full"
     widths = "32,64,128,256" if full else "16" if smoke else "32,64,128"
     study.multirun("lnf_width", study.method("lnf", [f"model.width={widths}"]), label={"method": "lnf", "knob": "width"})
-    if not smoke:
+    if architecture_knobs(study):
         study.multirun("lnf_depth", study.method("lnf", ["model.depth=1,3"]), label={"method": "lnf", "knob": "depth"})
         study.multirun("lnf_K", study.method("lnf", ["model.reduction_steps=1,5"]), label={"method": "lnf", "knob": "K"})
         study.multirun("lnf_latent", study.method("lnf", ["model.latent_dim=2"]), label={"method": "lnf", "knob": "d"})
-    study.multirun("latent_mlp_width", study.method("latent_mlp", [f"model.width={widths}"]),
-                   label={"method": "latent_mlp", "knob": "width"})
+    if study.supports("latent_mlp"):
+        study.multirun("latent_mlp_width", study.method("latent_mlp", [f"model.width={widths}"]),
+                       label={"method": "latent_mlp", "knob": "width"})
     modes = "1,2" if smoke else "1,2,3,4,5,6,7,8"
     study.multirun("pod_modes", study.method("pod", [f"model.latent_dim={modes}"]), label={"method": "pod", "knob": "k"})
-    res = "12" if smoke else "32,64"
-    study.multirun("full_order_grid", study.method("full_order", [f"model.resolution={res}"]),
-                   label={"method": "full_order", "knob": "resolution"})
+    if study.supports("full_order"):
+        res = "12" if smoke else "32,64"
+        study.multirun("full_order_grid", study.method("full_order", [f"model.resolution={res}"]),
+                       label={"method": "full_order", "knob": "resolution"})
 
 
 def reference_checkpoint(study: S.Study) -> Path:
@@ -102,28 +121,84 @@ def checkpoints(study: S.Study, sweep: str) -> list[tuple[int, Path]]:
             for r in study.rows if r["sweep"] == sweep and "model.width" in r]
 
 
-def tabulated_sweeps(study: S.Study) -> None:
-    """Our width sweep rolled out with the tabulated pullback (``dynamics=tabulated``: M̃ and Ṽ as Chebyshev
-    interpolants on the training codes' range, built once per model) and the black box at the same time steps.
+def experiment_dynamics(study: S.Study) -> str:
+    """The dynamics config the scene experiment selects (``tabulated`` for the elastic cantilever), else ``lagrangian``."""
+    from omegaconf import OmegaConf
 
-    Both run RK4 at dt = 0.05 (the data's spacing, the black box's training step) and 0.1, so the two are
-    compared at equal integrator and step; ours also with the 4th-order midpoint rule at 0.05."""
+    experiment = OmegaConf.load(S.ROOT / "conf" / "experiment" / f"{study.scene}.yaml")
+    for item in experiment.get("defaults") or []:
+        if isinstance(item, dict) or OmegaConf.is_dict(item):
+            for key, value in dict(item).items():
+                if str(key).split()[-1].lstrip("/") == "dynamics":
+                    return str(value)
+    return "lagrangian"
+
+
+def tabulated_sweeps(study: S.Study) -> None:
+    """Our width sweep rolled out with the other pullback and the black box at the same time steps.
+
+    The other pullback is the tabulated one (``dynamics=tabulated``: M̃ and Ṽ as Chebyshev interpolants on the
+    training codes' range, built once per model) where the scene trains with the exact one, and the exact one
+    (``dynamics=lagrangian``) where the scene experiment already tabulates (the elastic cantilever). Both run RK4
+    at dt = 0.05 (the data's spacing, the black box's training step) and 0.1, so the two are compared at equal
+    integrator and step; ours also with the 4th-order midpoint rule at 0.05."""
     smoke = study.mode == "smoke"
     common = ["figures=0", f"threads={study.threads}"]
     dts = "0.05" if smoke else "0.05,0.1"
-    for width, ckpt in checkpoints(study, "lnf_width"):
-        label = {"method": "lnf", "knob": "tabulated", "model.width": width, "dynamics": "tabulated"}
-        study.multirun(f"tabulated_rk4_w{width}", [*common, f"ckpt_path={ckpt}", "dynamics=tabulated",
-                                                     "integrator=rk4", f"dt={dts}"], "lnf.evaluate", label)
+    other = "lagrangian" if experiment_dynamics(study) == "tabulated" else "tabulated"
+    knob = "exact" if other == "lagrangian" else "tabulated"
+    widths = checkpoints(study, "lnf_width")
+    if other == "tabulated" and widths and not conservative(widths[0][1]):
+        print(f"[{study.name}] no tabulated variant: {study.scene} has damping or loads (the table needs a "
+              "conservative scene)", flush=True)
+        widths = []
+    for width, ckpt in widths:
+        label = {"method": "lnf", "knob": knob, "model.width": width, "dynamics": other}
+        study.multirun(f"{knob}_rk4_w{width}", [*common, f"ckpt_path={ckpt}", f"dynamics={other}",
+                                                  "integrator=rk4", f"dt={dts}"], "lnf.evaluate", label)
         if not smoke:
-            study.multirun(f"tabulated_midpoint_w{width}", [*common, f"ckpt_path={ckpt}", "dynamics=tabulated",
-                                                              "integrator=implicit_midpoint", "integrator.order=4"],
+            study.multirun(f"{knob}_midpoint_w{width}", [*common, f"ckpt_path={ckpt}", f"dynamics={other}",
+                                                           "integrator=implicit_midpoint", "integrator.order=4"],
                            "lnf.evaluate", label)
     if smoke:
         return
     for width, ckpt in checkpoints(study, "latent_mlp_width"):  # its training run is RK4 at dt = 0.05
         study.multirun(f"latent_mlp_dt_w{width}", [*common, f"ckpt_path={ckpt}", "integrator=rk4", "dt=0.1"],
                        "lnf.evaluate", {"method": "latent_mlp", "knob": "dt", "model.width": width})
+
+
+def conservative(ckpt: Path) -> bool:
+    """Whether the scene of a trained model of ours has no damping or external load (what a table needs)."""
+    from lnf.model import load
+
+    model = load(ckpt)
+    model.set_tabulation(None)
+    return model.dynamics().force_fn is None
+
+
+def simulator_seconds(ckpt: Path, threads: int) -> dict:
+    """Wall-clock per test trajectory of the scene's own full-order simulator over the test horizon (the FEM
+    of the elastic scenes), measured in this run (the faster of two): the ground truth, so its error is 0."""
+    import time
+
+    import torch
+
+    from lnf.dataset import DatasetConfig, load_split
+    from lnf.model import load
+
+    torch.set_num_threads(threads)
+    model = load(ckpt)
+    data = dict(model.checkpoint.get("data") or {})
+    path = Path(data.pop("path"))
+    data.pop("on_mismatch", None)
+    split = load_split(path, "test", scene=model.scene, cfg=DatasetConfig.from_mapping(data))
+    best = float("inf")
+    for _ in range(2):
+        start = time.perf_counter()
+        model.scene.simulate(split.states[:, 0], split.times)
+        best = min(best, time.perf_counter() - start)
+    return {"simulator_seconds_per_trajectory": best / len(split.states), "trajectories": len(split.states),
+            "horizon_s": float(split.times[-1] + split.times[1] - split.times[0])}
 
 
 def n_quadrature_points(row: dict) -> float:
@@ -146,6 +221,10 @@ def smallest_quadrature(rows: list[dict]) -> dict:
 
 ROLLOUT = "rollout_seconds_per_trajectory"
 VARIANT_KNOBS = ("quadrature", "integrator", "dt")  # re-evaluations of a trained model: hollow markers
+# our width sweep re-evaluated with the pullback the scene does not train with: knob → (marker, legend)
+OTHER_PULLBACK = {"tabulated": ("*", "tabulated M̃, Ṽ (dynamics=tabulated)"),
+                  "exact": ("P", "exact pullback (dynamics=lagrangian)")}
+DIVERGED_AT = 10.0
 
 
 def cost_panels() -> list[tuple[str, str]]:
@@ -154,7 +233,7 @@ def cost_panels() -> list[tuple[str, str]]:
             ("train_seconds", "training wall-clock [s] (incl. closed-form fits)")]
 
 
-def plot(study: S.Study, rows: list[dict]) -> list[Path]:
+def plot(study: S.Study, rows: list[dict], simulator: dict | None = None) -> list[Path]:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -170,25 +249,32 @@ def plot(study: S.Study, rows: list[dict]) -> list[Path]:
             sel = [i for i, r in enumerate(pts) if S.method_of(r) == m]
             if not sel:
                 continue
-            tabulated = [i for i in sel if pts[i].get("knob") == "tabulated"]
+            other = [i for i in sel if pts[i].get("knob") in OTHER_PULLBACK]
             variants = [i for i in sel if pts[i].get("knob") in VARIANT_KNOBS]
-            core = [i for i in sel if i not in variants and i not in tabulated]
+            core = [i for i in sel if i not in variants and i not in other]
             ax.scatter(x[core], y[core], c=S.COLORS[m], marker=S.MARKERS[m], s=50, label=S.LABELS[m], zorder=3)
             if variants:
                 ax.scatter(x[variants], y[variants], facecolors="none", edgecolors=S.COLORS[m], marker=S.MARKERS[m],
                            s=40, label=f"{S.LABELS[m]}: quadrature / integrator / dt variants", zorder=3)
-            if tabulated:
-                ax.scatter(x[tabulated], y[tabulated], c=S.COLORS[m], marker="*", s=90, zorder=4,
-                           label=f"{S.LABELS[m]}, tabulated M̃, Ṽ (dynamics=tabulated)")
-            for i in core + tabulated:
+            for knob, (marker, text) in OTHER_PULLBACK.items():
+                pick = [i for i in other if pts[i].get("knob") == knob]
+                if pick:
+                    ax.scatter(x[pick], y[pick], c=S.COLORS[m], marker=marker, s=90, zorder=4,
+                               label=f"{S.LABELS[m]}, {text}")
+            failed = [i for i in sel if np.isfinite(x[i]) and not np.isfinite(y[i])]
+            if failed:  # a diverged rollout's error is inf: drawn at the top, marked ×
+                ax.scatter(x[failed], np.full(len(failed), DIVERGED_AT), c=S.COLORS[m], marker="x", s=60, zorder=4,
+                           label=f"{S.LABELS[m]}: diverged (drawn at {DIVERGED_AT:g})")
+            for i in core + other:
                 knob = pts[i].get("knob")
                 key = {"width": "model.width", "depth": "model.depth", "K": "model.reduction_steps",
                        "d": "model.latent_dim", "k": "model.latent_dim", "resolution": "model.resolution",
-                       "tabulated": "model.width"}.get(knob)
+                       "tabulated": "model.width", "exact": "model.width"}.get(knob)
                 if key and key in pts[i]:
-                    text = f"{knob}={pts[i][key]}" if knob != "tabulated" else (
+                    text = f"{knob}={pts[i][key]}" if knob not in OTHER_PULLBACK else (
                         f"w={pts[i][key]} {pts[i].get('integrator', 'midpoint')} {pts[i].get('dt') or ''}")
-                    ax.annotate(text, (x[i], y[i]), fontsize=6, xytext=(3, 3), textcoords="offset points")
+                    ax.annotate(text, (x[i], y[i] if np.isfinite(y[i]) else DIVERGED_AT), fontsize=6, xytext=(3, 3),
+                                textcoords="offset points")
         front = S.pareto_mask(x, y)
         order = np.argsort(x[front])
         ax.step(x[front][order], y[front][order], where="post", color="k", lw=1, ls="--", label="Pareto front", zorder=2)
@@ -199,12 +285,18 @@ def plot(study: S.Study, rows: list[dict]) -> list[Path]:
                 order = np.argsort(x[own])
                 ax.step(x[own][order], y[own][order], where="post", color=S.COLORS[m], lw=0.8, ls=":", zorder=2,
                         label=f"front of {S.LABELS[m]}")
+        if simulator and xkey != "train_seconds":
+            ax.axvline(simulator["simulator_seconds_per_trajectory"], color="tab:gray", lw=1.2,
+                       label=f"the scene's full-order simulator (ground truth, error 0), "
+                             f"{simulator['simulator_seconds_per_trajectory']:.3g} s")
         ax.set_xscale("log")
         ax.set_yscale("log")
         ax.set_xlabel(xlabel, fontsize=8)
         ax.set_ylabel("test field_rel_l2, extrapolation (t ≥ 2.5 s), median")
         ax.grid(True, which="both", alpha=0.3)
     axes[0].legend(fontsize=6, loc="best")
+    if simulator:
+        axes[1].legend(fontsize=6, loc="best")
     fig.suptitle(f"Accuracy vs cost, {study.scene} — {S.caption(study, 'python experiments/pareto.py')}", fontsize=9)
     out = [S.save_figure(fig, study.out / "pareto.png")]
 
@@ -214,8 +306,9 @@ def plot(study: S.Study, rows: list[dict]) -> list[Path]:
             sel = sorted((r for r in rows if r["sweep"].startswith(f"{prefix}quad_") and r.get("quadrature") == kind
                           and (prefix or not r["sweep"].startswith("ref_"))), key=n_quadrature_points)
             if sel:
-                ax.plot([n_quadrature_points(r) for r in sel], [float(r["field_rel_l2/all/median"]) for r in sel], style,
-                        label=f"{kind.replace('_', '–')} ({name})")
+                err = np.array([float(r["field_rel_l2/all/median"]) for r in sel])
+                S.plot_marking_failures(ax, np.array([n_quadrature_points(r) for r in sel]), err, ~np.isfinite(err),
+                                        style, label=f"{kind.replace('_', '–')} ({name})")
     ax.set_xlabel("quadrature points inside the reduced dynamics")
     ax.set_ylabel("test field_rel_l2 (all), median")
     S.log_axes(ax)
@@ -224,8 +317,37 @@ def plot(study: S.Study, rows: list[dict]) -> list[Path]:
     return out
 
 
-def summary(study: S.Study, rows: list[dict]) -> Path:
-    core = [r for r in rows if r.get("knob") not in (*VARIANT_KNOBS, "tabulated")]
+def describe(row: dict) -> str:
+    """A short name of one point's settings (width, k or grid; the re-evaluation's dynamics, integrator and dt)."""
+    parts = [f"{k} {row[key]}" for k, key in [("width", "model.width"), ("depth", "model.depth"),
+                                                ("K", "model.reduction_steps"), ("d/k", "model.latent_dim"),
+                                                ("grid", "model.resolution")] if row.get(key) not in (None, "")]
+    if row.get("knob") in (*VARIANT_KNOBS, *OTHER_PULLBACK):
+        parts += [str(row.get(k)) for k in ("dynamics", "integrator") if row.get(k)]
+        parts += [f"order {row['integrator.order']}"] if row.get("integrator.order") else []
+        parts += [f"dt {row['dt']}"] if row.get("dt") else []
+        parts += [f"GL {row['quadrature.order']}²"] if row.get("quadrature.order") else []
+        parts += [f"uniform {row['quadrature.resolution']}²"] if row.get("quadrature.resolution") else []
+    return ", ".join(parts) or "default"
+
+
+def best_of_each_method(rows: list[dict]) -> list[dict]:
+    """Per method, its most accurate row: the cheapest (rollout + decoding) of those within 1 % of its lowest finite
+    extrapolation error, so that ties (POD beyond the modes a scene has) name the smallest model. None where every
+    run diverged."""
+    out = []
+    for m in S.METHODS:
+        mine = [r for r in rows if S.method_of(r) == m and not r["sweep"].startswith("ref_")
+                and np.isfinite(float(r.get(ERR, np.nan)))]
+        if mine:
+            lowest = min(float(r[ERR]) for r in mine)
+            best = min((r for r in mine if float(r[ERR]) <= 1.01 * lowest), key=lambda r: float(r.get(COST, np.inf)))
+            out.append({**best, "label": S.LABELS[m], "setting": describe(best)})
+    return out
+
+
+def summary(study: S.Study, rows: list[dict], simulator: dict | None = None) -> Path:
+    core = [r for r in rows if r.get("knob") not in (*VARIANT_KNOBS, *OTHER_PULLBACK)]
     lnf = [r for r in rows if S.method_of(r) == "lnf" and not r["sweep"].startswith("ref_")]
     bb = [r for r in rows if S.method_of(r) == "latent_mlp"]
 
@@ -236,26 +358,46 @@ def summary(study: S.Study, rows: list[dict]) -> Path:
         missed = [f"width {r.get('model.width')} dt {r.get('dt') or 0.05}" for r, f in zip(bb, flags) if not f]
         return f"{sum(flags)}/{len(flags)}" + (f" (not: {', '.join(missed)})" if missed else "")
 
-    exact = [r for r in lnf if r.get("knob") != "tabulated"]
+    if experiment_dynamics(study) == "tabulated":  # the scene trains with the table: its exact points are variants
+        exact, exact_text = [r for r in lnf if r.get("knob") == "exact"], "with the exact pullback's points only"
+    else:
+        exact, exact_text = [r for r in lnf if r.get("knob") != "tabulated"], "without the tabulated ones"
     fom = [r for r in rows if S.method_of(r) == "full_order" and int(r.get("model.resolution", 0)) == 64]
     ref = [r for r in lnf if r.get("knob") == "width" and int(r.get("model.width", 0)) ==
            {"smoke": 16, "reduced": 64, "full": 256}[study.mode]]
+    command = f"python experiments/pareto.py{'' if study.mode == 'reduced' else ' --' + study.mode}" + (
+        f" --scene {study.scene}" if study.scene != "pendulum" else "")
     lines = [f"# Pareto study ({study.scene}, {study.mode} settings)\n",
-             f"Machine: {study.machine()}. Command: `python experiments/pareto.py{'' if study.mode == 'reduced' else ' --' + study.mode}`.\n",
-             f"Cost = `{COST}`: latent rollout over the 5 s horizon + decoding at every sample time on the 64×64 test grid,"
-             " per trajectory, 16 rolled out at once (runs with a larger dt decode fewer frames: their decoding is scaled"
-             " to the same frame count);"
-             f" error = test `{ERR}`.\n",
-             "\nBlack-box points dominated by one of our points (cost ≤ and extrapolation error ≤):\n",
-             f"- on latent rollout cost (`{ROLLOUT}`): {dominance(ROLLOUT, lnf)} with every point of ours; "
-             f"{dominance(ROLLOUT, exact)} without the tabulated ones;\n",
-             f"- on rollout + decoding cost (`{COST}`): {dominance(COST, lnf)} with every point of ours; "
-             f"{dominance(COST, exact)} without the tabulated ones.\n"]
+             f"Machine: {study.machine()}. Command: `{command}`.\n",
+             f"Cost = `{COST}`: latent rollout over the test horizon + decoding at every sample time on the test grid,"
+             " per trajectory, all test trajectories rolled out at once (runs with a larger dt decode fewer frames: their"
+             " decoding is scaled to the same frame count);"
+             f" error = test `{ERR}`.\n"]
+    if bb:
+        lines += ["\nBlack-box points dominated by one of our points (cost ≤ and extrapolation error ≤):\n",
+                  f"- on latent rollout cost (`{ROLLOUT}`): {dominance(ROLLOUT, lnf)} with every point of ours; "
+                  f"{dominance(ROLLOUT, exact)} {exact_text};\n",
+                  f"- on rollout + decoding cost (`{COST}`): {dominance(COST, lnf)} with every point of ours; "
+                  f"{dominance(COST, exact)} {exact_text}.\n"]
+    else:
+        lines.append("\nNo black-box latent MLP: it cannot run this scene (studylib.UNSUPPORTED).\n")
+    if simulator and ref:
+        sim = simulator["simulator_seconds_per_trajectory"]
+        lines.append(f"\nThe scene's full-order simulator (the ground truth), measured in this run: {S.fmt(sim)} s per "
+                     f"trajectory over {S.fmt(simulator['horizon_s'])} s ({simulator['trajectories']} test trajectories). "
+                     f"Our reference model (width {ref[0]['model.width']}): rollout {S.fmt(ref[0][ROLLOUT])} s, "
+                     f"{S.fmt(sim / float(ref[0][ROLLOUT]))}× faster; with decoding {S.fmt(ref[0][COST])} s, "
+                     f"{S.fmt(sim / float(ref[0][COST]))}× faster.\n")
     if fom and ref:
         lines.append(f"\nFull-order model on the 64×64 grid: {S.fmt(fom[0][COST])} s per trajectory (rollout "
                      f"{S.fmt(fom[0]['rollout_seconds_per_trajectory'])} s); our reference model: "
                      f"{S.fmt(ref[0][COST])} s (rollout {S.fmt(ref[0]['rollout_seconds_per_trajectory'])} s): ratio ours/full "
                      f"= {float(ref[0][COST]) / float(fom[0][COST]):.3g}.\n")
+    lines.append("\nMost accurate point of each method (extrapolation error; its costs and energy drift):\n\n"
+                 + S.markdown_table(best_of_each_method(rows), [
+                     ("label", "method"), ("setting", "setting"), (ERR, "err extrapolation"),
+                     ("field_rel_l2/in_horizon/median", "err in-horizon"), ("energy_drift/max", "energy drift"),
+                     (ROLLOUT, "rollout s/traj"), (COST, "rollout+decode s/traj"), ("train_seconds", "train s")]))
     for prefix, name in [("", "reference model"), ("ref_", "given checkpoint")]:
         quad = [r for r in rows if r["sweep"].startswith(f"{prefix}quad_") and (prefix or not r["sweep"].startswith("ref_"))]
         if quad:
@@ -292,8 +434,16 @@ def main(argv=None) -> None:
     rows = study.rows
     fill_frames(rows)
     add_cost(rows, max(int(float(r["frames"])) for r in rows if "frames" in r))
+    simulator = None
+    if study.scene in SIMULATOR_IS_FULL_ORDER:  # measured with the sweeps: reused with them, unless --fresh
+        stored = study.out / "simulator.json"
+        if stored.is_file() and not study.fresh:
+            simulator = json.loads(stored.read_text())
+        else:
+            simulator = simulator_seconds(reference_checkpoint(study), study.threads)
+            S.write_text_atomic(stored, json.dumps(simulator, indent=1))
     csv_path = study.write_csv("pareto.csv")
-    study.finish([csv_path, *plot(study, rows), summary(study, rows)])
+    study.finish([csv_path, *plot(study, rows, simulator), summary(study, rows, simulator)])
 
 
 if __name__ == "__main__":

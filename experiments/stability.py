@@ -10,7 +10,9 @@ multiruns of `python -m lnf.evaluate`:
 - long horizons: 20× and 200× the training horizon (50 s and 500 s at a 0.05 s step), energy drift and
   vpt per method and integrator (200×: sampled every 0.5 s, integrated at 0.05 s);
 - high energy: θ0 = 0.5π (edge of the training range) … 0.99π at rest, and one rotating pendulum above
-  the separatrix (θ0 = 0, θ̇0 = 7 rad/s);
+  the separatrix (θ0 = 0, θ̇0 = 7 rad/s); on the other scenes (`--scene`, see HIGH_ENERGY) both links of the
+  double pendulum at θ0, the bump's pendulum as the pendulum's, the cantilever released at rest from tip
+  deflections 0.15 m (edge of the training range) … 0.4 m;
 - large time steps: dt = 0.05 … 0.8 s until each method and integrator fails (a trajectory diverges, or
   its error exceeds max(2 × its own dt = 0.05 error, 0.05));
 - resolution transfer: trained on 25 % of 32×32, evaluated on 16², 64², 128² and 4096 random points.
@@ -21,7 +23,9 @@ summary.md into outputs/studies/stability/.
 from __future__ import annotations
 
 import sys
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any, Optional, Sequence
 
 import numpy as np
 
@@ -31,13 +35,81 @@ import studylib as S  # noqa: E402
 INTEGRATORS = {"lnf": ["implicit_midpoint", "rk4"], "latent_mlp": ["rk4"], "pod": ["implicit_midpoint", "rk4"],
                "full_order": ["implicit_midpoint", "rk4"]}
 SHORT = {"implicit_midpoint": "midpoint-4", "rk4": "RK4"}
-HIGH_ENERGY = [[0.5, 0.0], [0.7, 0.0], [0.85, 0.0], [0.95, 0.0], [0.99, 0.0]]  # θ0 in units of π, θ̇0
-ROTATION = [0.0, 7.0]
+
+
+@dataclass(frozen=True)
+class StressCases:
+    """The high-energy question of one scene: releases at rest beyond the training range, one per `levels`
+    value (the x of the chart), and optionally one state above the separatrix (`rotation`)."""
+
+    levels: tuple[float, ...]
+    xlabel: str
+    train_edge: float  # the training range ends at this level (shaded in the chart)
+    train_text: str
+    rotation: Optional[tuple[float, ...]] = None
+
+    def states(self, scene: Any, level: float) -> np.ndarray:
+        """The full-order initial state (state_dim,) of `level` for `scene`."""
+        name = type(scene).__name__
+        if name in ("LiftedPendulum", "BumpPendulum"):
+            return np.array([level * np.pi, 0.0])
+        if name == "LiftedDoublePendulum":  # both links at θ0, at rest
+            return np.array([level * np.pi, level * np.pi, 0.0, 0.0])
+        if name == "ElasticCantilever":  # the scene's release with tip deflection `level`, at rest, unloaded
+            load = np.array([0.0, float(np.mean(scene.load_frequency_range))])
+            return scene.pack(scene.release_shape(np.array([level])), scene.release_velocity(np.array([0.0])),
+                              load[None])[0]
+        raise ValueError(f"stability.py has no high-energy states for scene {name}")
+
+
+PENDULUM_CASES = StressCases((0.5, 0.7, 0.85, 0.95, 0.99), "θ0 / π (released at rest; 1 = separatrix)", 0.5,
+                             "training range |θ0| ≤ π/2", rotation=(0.0, 7.0))
+ELASTIC_CASES = StressCases((0.15, 0.2, 0.25, 0.3, 0.4), "tip deflection of the release at rest δ [m]", 0.15,
+                            "training range |δ| ≤ 0.15 m")
+HIGH_ENERGY: dict[str, StressCases] = {
+    "pendulum": PENDULUM_CASES,
+    "bump": PENDULUM_CASES,  # the bump rides on a pendulum angle with the pendulum's training range
+    "double_pendulum": StressCases((0.5, 0.7, 0.85, 0.95, 0.99), "θ1(0) = θ2(0) = θ0, at rest: θ0 / π", 0.5,
+                                   "training range |θ_i| ≤ π/2"),
+    "elastic": ELASTIC_CASES,
+    "elastic_actuated": ELASTIC_CASES,
+}
+# scenes whose ground truth is a costly full-order simulation (the FEM): the 200× horizon measures the energy
+# drift of 10 000 steps (lnf.evaluate long_steps) without re-simulating 500 s of ground truth for every job
+COSTLY_GROUND_TRUTH = {"elastic", "elastic_actuated"}
+INLINE_STATE_SIZE = 8  # larger full-order states (the elastic mesh) go to lnf.evaluate as .npy files
+
+
+def stress_cases(study: S.Study) -> Optional[StressCases]:
+    return HIGH_ENERGY.get(study.scene)
+
+
+def initial_state_arguments(study: S.Study, scene: Any, cases: StressCases, levels: Sequence[float]) -> dict[str, float]:
+    """`initial_states=` values for lnf.evaluate → their level: inline lists for small states, else .npy files
+    written into the study's folder."""
+    out = {}
+    for level in levels:
+        state = cases.states(scene, level)
+        if state.size <= INLINE_STATE_SIZE:
+            out["[[" + ",".join(f"{x:.6f}" for x in state) + "]]"] = level
+        else:
+            path = study.out / "initial_states" / f"high_energy_{level:g}.npy"
+            path.parent.mkdir(parents=True, exist_ok=True)
+            tmp = path.with_name(path.stem + ".tmp.npy")
+            np.save(tmp, state[None])
+            tmp.replace(path)
+            out[str(path)] = level
+    return out
+
+
+def methods(study: S.Study) -> list[str]:
+    """The methods of studylib.METHODS that can run the study's scene."""
+    return [m for m in S.METHODS if study.supports(m)]
 
 
 def train_all(study: S.Study) -> dict[str, Path]:
     ckpts = {}
-    for m in S.METHODS:
+    for m in methods(study):
         rows = study.multirun(f"train_{m}", study.method(m), label={"method": m, "study": "train"})
         ckpts[m] = S.ROOT / rows[0]["dir"] / "checkpoints" / "last.ckpt"
     return ckpts
@@ -47,9 +119,15 @@ def evaluations(study: S.Study, ckpts: dict[str, Path]) -> None:
     """One multirun per (question, integrator), sweeping the checkpoints of every method that integrator applies to."""
     smoke = study.mode == "smoke"
     by_path = {str(p): m for m, p in ckpts.items()}
+    cases = stress_cases(study)
+    scene = None
+    if cases is not None:
+        from lnf.model import load
+
+        scene = load(ckpts["lnf"]).scene
     before = len(study.rows)
     for integ in ("implicit_midpoint", "rk4"):
-        paths = ",".join(str(ckpts[m]) for m in S.METHODS if integ in INTEGRATORS[m])
+        paths = ",".join(str(ckpts[m]) for m in ckpts if integ in INTEGRATORS[m])
         common = [f"ckpt_path={paths}", "figures=0", f"threads={study.threads}", f"integrator={integ}"]
         lab = {"integrator_name": integ}
         # long horizons (20× and 200× the 2.5 s training horizon)
@@ -57,23 +135,30 @@ def evaluations(study: S.Study, ckpts: dict[str, Path]) -> None:
         study.multirun(f"long20_{integ}", [*common, f"horizon={h20}", "dt=0.05", "max_trajectories=4",
                                            "grid.kind=uniform", "grid.resolution=32"], "lnf.evaluate",
                        {**lab, "study": "long", "horizon_factor": 20})
-        if not smoke:
+        if not smoke and study.scene in COSTLY_GROUND_TRUTH:  # energy only: no 500 s FEM reference per job
+            study.multirun(f"long200_{integ}", [*common, "long_steps=10000", "long_trajectories=4"], "lnf.evaluate",
+                           {**lab, "study": "long", "horizon_factor": 200})
+        elif not smoke:
             study.multirun(f"long200_{integ}", [*common, f"horizon={h200}", "dt=0.5", "integrator.substeps=10",
                                                 "max_trajectories=4", "grid.kind=uniform", "grid.resolution=32"],
                            "lnf.evaluate", {**lab, "study": "long", "horizon_factor": 200})
         # high energy and beyond the training range
-        ics = HIGH_ENERGY[:2] if smoke else HIGH_ENERGY
-        states = ",".join(f"[[{th * np.pi:.6f},{om}]]" for th, om in ics)
-        study.multirun(f"energy_{integ}", [*common, f"initial_states={states}"], "lnf.evaluate",
-                       {**lab, "study": "high_energy"})
-        if not smoke:
-            study.multirun(f"rotation_{integ}", [*common, f"initial_states=[[{ROTATION[0]},{ROTATION[1]}]]"],
-                           "lnf.evaluate", {**lab, "study": "rotation"})
+        if cases is not None:
+            levels = cases.levels[:2] if smoke else cases.levels
+            values = initial_state_arguments(study, scene, cases, levels)
+            before_energy = len(study.rows)
+            study.multirun(f"energy_{integ}", [*common, f"initial_states={','.join(values)}"], "lnf.evaluate",
+                           {**lab, "study": "high_energy"})
+            for row in study.rows[before_energy:]:
+                row["stress_level"] = values[_state_key(row["initial_states"])]
+            if cases.rotation is not None and not smoke:
+                study.multirun(f"rotation_{integ}", [*common, "initial_states=[[" + ",".join(map(str, cases.rotation))
+                                                     + "]]"], "lnf.evaluate", {**lab, "study": "rotation"})
         # large time steps
         dts = "0.05,0.2" if smoke else "0.05,0.1,0.2,0.4,0.8"
         study.multirun(f"dt_{integ}", [*common, f"dt={dts}", "max_trajectories=8"], "lnf.evaluate", {**lab, "study": "dt"})
         # resolution transfer, with each method's first integrator
-        own = ",".join(str(ckpts[m]) for m in S.METHODS if INTEGRATORS[m][0] == integ)
+        own = ",".join(str(ckpts[m]) for m in ckpts if INTEGRATORS[m][0] == integ)
         if own:
             res = "8" if smoke else "16,64,128"
             base = [f"ckpt_path={own}", "figures=0", f"threads={study.threads}", f"integrator={integ}"]
@@ -85,9 +170,20 @@ def evaluations(study: S.Study, ckpts: dict[str, Path]) -> None:
         row["method"] = by_path[str(row["ckpt_path"])]
 
 
-def _theta0(row: dict) -> float:
-    states = row.get("initial_states")
-    return float(states[0][0]) / np.pi if isinstance(states, list) else np.nan
+def _state_key(value: Any) -> str:
+    """The `initial_states=` argument a row was evaluated with, as written on the command line."""
+    if isinstance(value, list):
+        return "[[" + ",".join(f"{float(x):.6f}" for x in value[0]) + "]]"
+    return str(value)
+
+
+def _drift(row: dict) -> float:
+    """Energy drift of a long-horizon row: over its rollout, or over its `long_steps` run (no ground truth)."""
+    return float(row.get("energy_drift/max", row.get("energy_drift_long/max", np.nan)))
+
+
+def _level(row: dict) -> float:
+    return float(row.get("stress_level", np.nan))
 
 
 def _diverged(rows: list[dict]) -> np.ndarray:
@@ -129,7 +225,7 @@ def plot(study: S.Study, rows: list[dict]) -> Path:
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(2, 2, figsize=(13, 9))
-    combos = [(m, i) for m in S.METHODS for i in INTEGRATORS[m]]
+    combos = [(m, i) for m in methods(study) for i in INTEGRATORS[m]]
 
     ax = axes[0, 0]
     width = 0.8 / len(combos)
@@ -139,7 +235,7 @@ def plot(study: S.Study, rows: list[dict]) -> Path:
                    and int(r["horizon_factor"]) == factor]
             if not sel:
                 continue
-            drift = float(sel[0].get("energy_drift/max", np.nan))
+            drift = _drift(sel[0])
             x = j + (k - len(combos) / 2) * width
             diverged = float(sel[0].get("diverged_fraction", 0)) > 0 or not np.isfinite(drift)
             ax.bar(x, drift if np.isfinite(drift) else 1.0, width, color=S.COLORS[m],
@@ -154,9 +250,11 @@ def plot(study: S.Study, rows: list[dict]) -> Path:
     ax.set_title("Long horizons (× = diverged)", fontsize=9)
 
     ax = axes[0, 1]
-    error_lines(ax, rows, combos, "high_energy", _theta0)
-    ax.axvspan(0, 0.5, color="0.9", label="training range |θ0| ≤ π/2")
-    ax.set_xlabel("θ0 / π (released at rest; 1 = separatrix)")
+    cases = stress_cases(study)
+    if cases is not None:
+        error_lines(ax, rows, combos, "high_energy", _level)
+        ax.axvspan(0, cases.train_edge, color="0.9", label=cases.train_text)
+        ax.set_xlabel(cases.xlabel)
     ax.set_ylabel("field_rel_l2 over 5 s (× = diverged, drawn at 10)")
     ax.set_yscale("log")
     ax.legend(fontsize=7)
@@ -173,7 +271,7 @@ def plot(study: S.Study, rows: list[dict]) -> Path:
 
     ax = axes[1, 1]
     labels = []
-    for k, m in enumerate(S.METHODS):
+    for k, m in enumerate(methods(study)):
         sel = [r for r in rows if r.get("study") == "resolution" and r["method"] == m]
         sel = sorted(sel, key=lambda r: (r.get("grid.kind") == "random", int(r.get("grid.resolution", 0) or 0)))
         names = [f"{r['grid.resolution']}²" if r.get("grid.kind") == "uniform" else "4096 random" for r in sel]
@@ -183,35 +281,38 @@ def plot(study: S.Study, rows: list[dict]) -> Path:
     ax.set_xticks(np.arange(len(labels)), labels)
     ax.set_yscale("log")
     ax.set_ylabel("test field_rel_l2 (all), median")
-    ax.set_title("Resolution transfer (trained on 25 % of 32×32)", fontsize=9)
+    ax.set_title("Resolution transfer (grids not seen in training)", fontsize=9)
     ax.legend(fontsize=7)
     fig.suptitle(f"Stability, {study.scene} — {S.caption(study, 'python experiments/stability.py')}", fontsize=9)
     return S.save_figure(fig, study.out / "stability.png")
 
 
 def summary(study: S.Study, rows: list[dict]) -> Path:
+    cases = stress_cases(study)
+    highest = f"{cases.levels[-1]:g}: {cases.xlabel}" if cases else "none"
     table = []
-    for m in S.METHODS:
+    for m in methods(study):
         for integ in INTEGRATORS[m]:
             def pick(st, **kw):
                 return [r for r in rows if r.get("study") == st and r["method"] == m and r["integrator_name"] == integ
                         and all(str(r.get(k)) == str(v) for k, v in kw.items())]
             long20, long200 = pick("long", horizon_factor=20), pick("long", horizon_factor=200)
-            energy = sorted(pick("high_energy"), key=_theta0)
+            energy = sorted(pick("high_energy"), key=_level)
             rot = pick("rotation")
             dts = pick("dt")
             table.append({
                 "method": S.LABELS[m], "integrator": SHORT[integ],
                 "drift20": long20[0].get("energy_drift/max") if long20 else "",
                 "vpt20": long20[0].get("vpt/median") if long20 else "",
-                "drift200": long200[0].get("energy_drift/max") if long200 else "",
-                "vpt200": long200[0].get("vpt/median") if long200 else "",
+                "drift200": _drift(long200[0]) if long200 else "",
+                # a costly scene's 200× row measures the energy alone: its vpt would be the default 5 s horizon's
+                "vpt200": long200[0].get("vpt/median") if long200 and study.scene not in COSTLY_GROUND_TRUTH else "",
                 "err_099": energy[-1]["field_rel_l2/all/median"] if energy else "",
                 "err_rot": rot[0]["field_rel_l2/all/median"] if rot else "",
                 "max_dt": failure_dt(dts) if dts else "",
             })
     res = []
-    for m in S.METHODS:
+    for m in methods(study):
         row = {"method": S.LABELS[m]}
         for r in rows:
             if r.get("study") == "resolution" and r["method"] == m:
@@ -220,11 +321,12 @@ def summary(study: S.Study, rows: list[dict]) -> Path:
         res.append(row)
     text = [f"# Stability study ({study.scene}, {study.mode} settings)\n\n",
             f"Machine: {study.machine()}. Command: `python experiments/stability.py"
-            f"{'' if study.mode == 'reduced' else ' --' + study.mode}`.\n\n",
+            f"{'' if study.mode == 'reduced' else ' --' + study.mode}"
+            f"{'' if study.scene == 'pendulum' else ' --scene ' + study.scene}`.\n\n",
             S.markdown_table(table, [("method", "method"), ("integrator", "integrator"),
                                      ("drift20", "energy drift 20×"), ("vpt20", "vpt 20× [s]"),
                                      ("drift200", "energy drift 200×"), ("vpt200", "vpt 200× [s]"),
-                                     ("err_099", "err θ0=0.99π"), ("err_rot", "err rotation"),
+                                     ("err_099", f"err at the highest level ({highest})"), ("err_rot", "err rotation"),
                                      ("max_dt", "largest ok dt [s]")]),
             "\nResolution transfer (field_rel_l2, all, median):\n\n",
             S.markdown_table(res, [("method", "method")] + [(k, k) for k in ("16²", "64²", "128²", "random")])]

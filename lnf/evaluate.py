@@ -47,6 +47,22 @@ def evaluation_points(grid: DictConfig, bounds: list[list[float]], stored: np.nd
     raise ValueError(f"grid.kind must be 'stored', 'uniform' or 'random', got {kind!r}")
 
 
+def read_initial_states(spec: Any) -> np.ndarray:
+    """Full-order initial states (n, state_dim) from a list of lists or from the path of a .npy file (a large state,
+    such as the elastic scene's nodal displacements and velocities, does not fit on a command line)."""
+    if isinstance(spec, (str, Path)):
+        path = Path(spec)
+        if path.suffix != ".npy" or not path.is_file():
+            raise ValueError(f"initial_states={spec!r}: expected a list of states or an existing .npy file of shape "
+                             f"(n, state_dim)")
+        try:
+            return np.asarray(np.load(path, allow_pickle=False), dtype=np.float64)
+        except (ValueError, OSError) as err:
+            raise ValueError(f"initial_states={spec!r}: not a readable .npy array of states ({err})") from err
+    return np.asarray(OmegaConf.to_container(spec, resolve=True) if OmegaConf.is_config(spec) else spec,
+                      dtype=np.float64)
+
+
 def choose_dynamics(model: Any, spec: Any, ckpt_path: Any) -> None:
     """Apply ``dynamics=tabulated`` / ``dynamics=lagrangian`` to a loaded model (None keeps the checkpoint's)."""
     if not spec:
@@ -109,8 +125,7 @@ def evaluate(cfg: DictConfig) -> dict[str, float]:
     times = dt * np.arange(int(round(horizon / dt)))
     stored_times = len(times) == len(split.times) and np.allclose(times, split.times)
     if cfg.get("initial_states") is not None:
-        initial = np.asarray(OmegaConf.to_container(cfg.initial_states, resolve=True) if OmegaConf.is_config(
-            cfg.initial_states) else cfg.initial_states, dtype=np.float64)
+        initial = read_initial_states(cfg.initial_states)
         if initial.ndim != 2 or initial.shape[1] != split.states.shape[-1] or not np.isfinite(initial).all():
             raise ValueError(f"initial_states must be a list of finite full-order states, each of "
                              f"{split.states.shape[-1]} numbers {tuple(scene.state_names)}, got {initial.tolist()!r}")

@@ -37,11 +37,11 @@ def studies(tmp_path_factory):
     return tmp_path_factory.mktemp("studies")
 
 
-def _study(name, folder, *extra):
+def _study(name, folder, *extra, tag=""):
     import os
 
     env = {**os.environ, "LNF_DATA_DIR": str(folder / "data")}
-    out = folder / f"{name}-smoke"
+    out = folder / f"{name}-smoke{tag}"
     proc = subprocess.run([sys.executable, f"experiments/{name}.py", "--smoke", "--threads", "1", "--out", str(out),
                            *extra], cwd=ROOT, capture_output=True, text=True, timeout=600, env=env)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
@@ -132,6 +132,48 @@ def test_roofline_study_smoke(studies):
     assert len(rows) == 7 and all(float(r["ratio"]) > 0 for r in rows)
     assert _methods(rows) == {"lnf", "latent_mlp", "pod", "full_order"}
     assert (out / "roofline.png").stat().st_size > 0
+
+
+def test_pareto_study_smoke_on_the_elastic_scene(studies):
+    """A scene that trains with the tabulated pullback: the exact one is its variant, no nodal full-order model,
+    and the FEM's own cost per trajectory is measured, drawn and compared."""
+    out, _ = _study("pareto", studies, "--scene", "elastic", tag="-elastic")
+    rows = _csv(out / "pareto.csv")
+    assert _methods(rows) == {"lnf", "latent_mlp", "pod"}
+    assert any(r["knob"] == "exact" and r["dynamics"] == "lagrangian" for r in rows)
+    assert not any(r["knob"] == "tabulated" for r in rows)
+    simulator = json.loads((out / "simulator.json").read_text())
+    assert simulator["simulator_seconds_per_trajectory"] > 0 and simulator["trajectories"] == 2
+    assert "full-order simulator" in (out / "summary.md").read_text() and (out / "pareto.png").stat().st_size > 0
+
+
+def test_stability_study_smoke_on_the_actuated_scene(studies):
+    """Methods the scene cannot run are left out; its high-energy releases go to lnf.evaluate as .npy files."""
+    out, _ = _study("stability", studies, "--scene", "elastic_actuated", tag="-actuated")
+    rows = _csv(out / "stability.csv")
+    assert _methods(rows) == {"lnf", "pod"}
+    energy = [r for r in rows if r.get("study") == "high_energy"]
+    assert sorted({float(r["stress_level"]) for r in energy}) == [0.15, 0.2]
+    assert all(Path(r["initial_states"]).suffix == ".npy" for r in energy)
+    assert (out / "stability.png").stat().st_size > 0
+
+
+def test_stability_high_energy_states_per_scene():
+    sys.path.insert(0, str(ROOT / "experiments"))
+    import numpy as np
+    import stability
+    from lnf.scenes import LiftedDoublePendulum, LiftedPendulum
+
+    study = type("Study", (), {"out": Path("/nonexistent")})()  # inline states write no file
+    for scene, size in [(LiftedPendulum(), 2), (LiftedDoublePendulum(), 4)]:
+        cases = stability.HIGH_ENERGY["pendulum" if size == 2 else "double_pendulum"]
+        args = stability.initial_state_arguments(study, scene, cases, cases.levels)
+        assert list(args.values()) == list(cases.levels)
+        for arg, level in args.items():
+            state = json.loads(arg)
+            expected = [level * np.pi, 0.0] if size == 2 else [level * np.pi, level * np.pi, 0.0, 0.0]
+            assert np.allclose(state[0], expected, atol=1e-6) and stability._state_key(state) == arg  # the row finds its level again
+    assert set(stability.HIGH_ENERGY) >= {p.stem for p in (ROOT / "conf" / "experiment").glob("*.yaml")}
 
 
 def test_pareto_mask_and_study_choices():

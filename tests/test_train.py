@@ -98,6 +98,13 @@ def test_evaluate_from_given_initial_states(trained, tmp_path):
     assert "field_rel_l2/all/median" in metrics
     with pytest.raises(ValueError, match="initial_states must be a list of finite full-order states, each of 2"):
         evaluate(compose_config("evaluate", [f"ckpt_path={ckpt}", "initial_states=[[2.8]]"], tmp_path))
+    states = tmp_path / "states.npy"  # large states (the elastic mesh) come as a file
+    np.save(states, np.array([[2.8, 0.0]]))
+    again = evaluate(compose_config("evaluate", [f"ckpt_path={ckpt}", f"initial_states={states}", "figures=0"], tmp_path))
+    assert np.isfinite(again["field_rel_l2/all/median"])
+    with pytest.raises(ValueError, match="existing .npy file"):
+        evaluate(compose_config("evaluate", [f"ckpt_path={ckpt}", f"initial_states={tmp_path / 'missing.npy'}"],
+                                tmp_path))
 
 
 def test_load_errors(tmp_path):
