@@ -32,10 +32,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import studylib as S  # noqa: E402
 
 ERR = "field_rel_l2/extrapolation/median"
-COST = "cost_seconds"
-# scenes whose ground-truth simulator is itself a full-order discretisation (the FEM), drawn as a cost line;
-# the pendulum scenes' simulators integrate one or two angles, which says nothing about a full-order model
-SIMULATOR_IS_FULL_ORDER = {"elastic", "elastic_actuated"}  # rollout + decoding of one trajectory's fields at the data's sample times (see add_cost)
+COST = "cost_seconds"  # rollout + decoding of one trajectory's fields at the data's sample times (see add_cost)
 
 
 def fill_frames(rows: list[dict]) -> None:
@@ -125,8 +122,7 @@ def experiment_dynamics(study: S.Study) -> str:
     """The dynamics config the scene experiment selects (``tabulated`` for the elastic cantilever), else ``lagrangian``."""
     from omegaconf import OmegaConf
 
-    experiment = OmegaConf.load(S.ROOT / "conf" / "experiment" / f"{study.scene}.yaml")
-    for item in experiment.get("defaults") or []:
+    for item in study.experiment().get("defaults") or []:
         if isinstance(item, dict) or OmegaConf.is_dict(item):
             for key, value in dict(item).items():
                 if str(key).split()[-1].lstrip("/") == "dynamics":
@@ -179,25 +175,16 @@ def conservative(ckpt: Path) -> bool:
 def simulator_seconds(ckpt: Path, threads: int) -> dict:
     """Wall-clock per test trajectory of the scene's own full-order simulator over the test horizon (the FEM
     of the elastic scenes), measured in this run (the faster of two): the ground truth, so its error is 0."""
-    import time
-
     import torch
 
-    from lnf.dataset import DatasetConfig, load_split
     from lnf.model import load
+    from scenes import datamodule_of, timed
 
     torch.set_num_threads(threads)
     model = load(ckpt)
-    data = dict(model.checkpoint.get("data") or {})
-    path = Path(data.pop("path"))
-    data.pop("on_mismatch", None)
-    split = load_split(path, "test", scene=model.scene, cfg=DatasetConfig.from_mapping(data))
-    best = float("inf")
-    for _ in range(2):
-        start = time.perf_counter()
-        model.scene.simulate(split.states[:, 0], split.times)
-        best = min(best, time.perf_counter() - start)
-    return {"simulator_seconds_per_trajectory": best / len(split.states), "trajectories": len(split.states),
+    split = datamodule_of(model).split("test")
+    seconds, _ = timed(lambda: model.scene.simulate(split.states[:, 0], split.times))
+    return {"simulator_seconds_per_trajectory": seconds / len(split.states), "trajectories": len(split.states),
             "horizon_s": float(split.times[-1] + split.times[1] - split.times[0])}
 
 
@@ -435,7 +422,7 @@ def main(argv=None) -> None:
     fill_frames(rows)
     add_cost(rows, max(int(float(r["frames"])) for r in rows if "frames" in r))
     simulator = None
-    if study.scene in SIMULATOR_IS_FULL_ORDER:  # measured with the sweeps: reused with them, unless --fresh
+    if study.scene in S.FEM_SCENES:  # measured with the sweeps: reused with them, unless --fresh
         stored = study.out / "simulator.json"
         if stored.is_file() and not study.fresh:
             simulator = json.loads(stored.read_text())

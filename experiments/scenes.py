@@ -185,7 +185,7 @@ def bump(model: Any, dm: SnapshotDataModule, out: Path, max_modes: int = 12) -> 
 
 
 # ---------------------------------------------------------------------------------------------------------
-def _timed(fn: Callable[[], Any], repeats: int = 2) -> tuple[float, Any]:
+def timed(fn: Callable[[], Any], repeats: int = 2) -> tuple[float, Any]:
     best, result = float("inf"), None
     for _ in range(repeats):
         start = time.perf_counter()
@@ -212,7 +212,7 @@ def elastic(model: Any, dm: SnapshotDataModule, out: Path, target: float = 0.05)
     fom = []
     for frac in (0.5, 0.6, 0.7, 0.8, 0.9):
         try:
-            seconds, states = _timed(lambda: scene.simulate(states0, times[in_h], time_step=frac * cfl), repeats=1)
+            seconds, states = timed(lambda: scene.simulate(states0, times[in_h], time_step=frac * cfl), repeats=1)
         except RuntimeError:
             fom.append({"cfl_fraction": frac, "stable": False})
             continue
@@ -246,11 +246,11 @@ def elastic(model: Any, dm: SnapshotDataModule, out: Path, target: float = 0.05)
     for name, spec in [("tabulated", tabulation), ("exact", None)] if tabulation is not None else [("exact", None)]:
         model.set_tabulation(spec)
         roll(2)  # warm-up (and the table, built once per model: its cost is reported apart)
-        timings[name], _ = _timed(lambda: roll(steps))
+        timings[name], _ = timed(lambda: roll(steps))
     model.set_tabulation(tabulation)
     rom_seconds = timings["tabulated" if tabulation is not None else "exact"]
     fom_frac = fom_best["cfl_fraction"] if fom_best else 0.5
-    fom_seconds, _ = _timed(lambda: scene.simulate(states0, times[in_h], time_step=fom_frac * cfl))
+    fom_seconds, _ = timed(lambda: scene.simulate(states0, times[in_h], time_step=fom_frac * cfl))
     result.update(fom=fom, rom=rom, fom_cfl_fraction=fom_frac, rom_dt=rom_best["dt"], rom_seconds=rom_seconds,
                   rom_seconds_exact=timings["exact"], speedup_exact=fom_seconds / timings["exact"],
                   dynamics="tabulated" if tabulation is not None else "lagrangian",

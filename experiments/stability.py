@@ -74,9 +74,6 @@ HIGH_ENERGY: dict[str, StressCases] = {
     "elastic": ELASTIC_CASES,
     "elastic_actuated": ELASTIC_CASES,
 }
-# scenes whose ground truth is a costly full-order simulation (the FEM): the 200× horizon measures the energy
-# drift of 10 000 steps (lnf.evaluate long_steps) without re-simulating 500 s of ground truth for every job
-COSTLY_GROUND_TRUTH = {"elastic", "elastic_actuated"}
 INLINE_STATE_SIZE = 8  # larger full-order states (the elastic mesh) go to lnf.evaluate as .npy files
 
 
@@ -91,7 +88,7 @@ def initial_state_arguments(study: S.Study, scene: Any, cases: StressCases, leve
     for level in levels:
         state = cases.states(scene, level)
         if state.size <= INLINE_STATE_SIZE:
-            out["[[" + ",".join(f"{x:.6f}" for x in state) + "]]"] = level
+            out[_inline(state)] = level
         else:
             path = study.out / "initial_states" / f"high_energy_{level:g}.npy"
             path.parent.mkdir(parents=True, exist_ok=True)
@@ -135,7 +132,7 @@ def evaluations(study: S.Study, ckpts: dict[str, Path]) -> None:
         study.multirun(f"long20_{integ}", [*common, f"horizon={h20}", "dt=0.05", "max_trajectories=4",
                                            "grid.kind=uniform", "grid.resolution=32"], "lnf.evaluate",
                        {**lab, "study": "long", "horizon_factor": 20})
-        if not smoke and study.scene in COSTLY_GROUND_TRUTH:  # energy only: no 500 s FEM reference per job
+        if not smoke and study.scene in S.FEM_SCENES:  # energy drift of 10 000 steps: no 500 s FEM reference per job
             study.multirun(f"long200_{integ}", [*common, "long_steps=10000", "long_trajectories=4"], "lnf.evaluate",
                            {**lab, "study": "long", "horizon_factor": 200})
         elif not smoke:
@@ -170,11 +167,14 @@ def evaluations(study: S.Study, ckpts: dict[str, Path]) -> None:
         row["method"] = by_path[str(row["ckpt_path"])]
 
 
+def _inline(state: Sequence[float]) -> str:
+    """One full-order state as an `initial_states=` value on the command line."""
+    return "[[" + ",".join(f"{float(x):.6f}" for x in state) + "]]"
+
+
 def _state_key(value: Any) -> str:
     """The `initial_states=` argument a row was evaluated with, as written on the command line."""
-    if isinstance(value, list):
-        return "[[" + ",".join(f"{float(x):.6f}" for x in value[0]) + "]]"
-    return str(value)
+    return _inline(value[0]) if isinstance(value, list) else str(value)
 
 
 def _drift(row: dict) -> float:
@@ -306,7 +306,7 @@ def summary(study: S.Study, rows: list[dict]) -> Path:
                 "vpt20": long20[0].get("vpt/median") if long20 else "",
                 "drift200": _drift(long200[0]) if long200 else "",
                 # a costly scene's 200× row measures the energy alone: its vpt would be the default 5 s horizon's
-                "vpt200": long200[0].get("vpt/median") if long200 and study.scene not in COSTLY_GROUND_TRUTH else "",
+                "vpt200": long200[0].get("vpt/median") if long200 and study.scene not in S.FEM_SCENES else "",
                 "err_099": energy[-1]["field_rel_l2/all/median"] if energy else "",
                 "err_rot": rot[0]["field_rel_l2/all/median"] if rot else "",
                 "max_dt": failure_dt(dts) if dts else "",
