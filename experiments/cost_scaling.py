@@ -152,14 +152,13 @@ def plot(study: S.Study, rows: list[dict]) -> Path:
     axes[2].set_ylabel("rollout wall-clock per trajectory [s] (100 steps)")
     for ax in axes:
         S.log_axes(ax, legend_size=6)
-    fig.suptitle(f"Cost scaling, {study.scene} — {S.caption(study, 'python experiments/cost_scaling.py')}", fontsize=9)
+    fig.suptitle(f"Cost scaling, {study.scene} — {S.caption(study)}", fontsize=9)
     return S.save_figure(fig, study.out / "cost_scaling.png")
 
 
 def summary(study: S.Study, rows: list[dict]) -> Path:
     lines = [f"# Cost scaling ({study.scene}, {study.mode} settings)\n\n",
-             f"Machine: {study.machine()}. Command: `python experiments/cost_scaling.py"
-             f"{'' if study.mode == 'reduced' else ' --' + study.mode}`.\n\n"]
+             f"Machine: {study.machine()}. Command: `{study.command()}`.\n\n"]
     for m in S.METHODS:
         pts = sorted((r for r in rows if r["method"] == m and r["sweep"] == "points"), key=lambda r: r["points"])
         if pts:

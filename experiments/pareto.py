@@ -284,7 +284,7 @@ def plot(study: S.Study, rows: list[dict], simulator: dict | None = None) -> lis
     axes[0].legend(fontsize=6, loc="best")
     if simulator:
         axes[1].legend(fontsize=6, loc="best")
-    fig.suptitle(f"Accuracy vs cost, {study.scene} — {S.caption(study, 'python experiments/pareto.py')}", fontsize=9)
+    fig.suptitle(f"Accuracy vs cost, {study.scene} — {S.caption(study)}", fontsize=9)
     out = [S.save_figure(fig, study.out / "pareto.png")]
 
     fig, ax = plt.subplots(figsize=(6.5, 4.5))
@@ -352,10 +352,8 @@ def summary(study: S.Study, rows: list[dict], simulator: dict | None = None) -> 
     fom = [r for r in rows if S.method_of(r) == "full_order" and int(r.get("model.resolution", 0)) == 64]
     ref = [r for r in lnf if r.get("knob") == "width" and int(r.get("model.width", 0)) ==
            {"smoke": 16, "reduced": 64, "full": 256}[study.mode]]
-    command = f"python experiments/pareto.py{'' if study.mode == 'reduced' else ' --' + study.mode}" + (
-        f" --scene {study.scene}" if study.scene != "pendulum" else "")
     lines = [f"# Pareto study ({study.scene}, {study.mode} settings)\n",
-             f"Machine: {study.machine()}. Command: `{command}`.\n",
+             f"Machine: {study.machine()}. Command: `{study.command()}`.\n",
              f"Cost = `{COST}`: latent rollout over the test horizon + decoding at every sample time on the test grid,"
              " per trajectory, all test trajectories rolled out at once (runs with a larger dt decode fewer frames: their"
              " decoding is scaled to the same frame count);"

@@ -27,11 +27,15 @@ def sweeps(study: S.Study) -> None:
     fractions = "0.5,0.25" if smoke else "0.25,0.1,0.05,0.01" if full else "0.25,0.05,0.01"
     noises = "0.1" if smoke else "0.01,0.05,0.1" if full else "0.05,0.1"
     for m in ("lnf", "latent_mlp", "pod"):
+        if not study.supports(m):
+            print(f"[{study.name}] {S.LABELS[m]} cannot run scene {study.scene!r}: skipped")
+            continue
         study.multirun(f"{m}_fraction", study.method(m, [f"data.observed_fraction={fractions}"]),
                        label={"method": m, "knob": "fraction"})
         study.multirun(f"{m}_noise", study.method(m, ["data.observed_fraction=0.25", f"data.noise={noises}"]),
                        label={"method": m, "knob": "noise"})
-    study.multirun("full_order", study.method("full_order"), label={"method": "full_order", "knob": "reference"})
+    if study.supports("full_order"):
+        study.multirun("full_order", study.method("full_order"), label={"method": "full_order", "knob": "reference"})
 
 
 def plot(study: S.Study, rows: list[dict]) -> Path:
@@ -59,7 +63,7 @@ def plot(study: S.Study, rows: list[dict]) -> Path:
         ax.set_xlabel(xlabel + (" (+0.001 so that 0 shows)" if knob == "noise" else ""))
         ax.set_ylabel("test field_rel_l2 (all), median")
         S.log_axes(ax)
-    fig.suptitle(f"Sparse and noisy training data, {study.scene} — {S.caption(study, 'python experiments/sparse_noisy.py')}"
+    fig.suptitle(f"Sparse and noisy training data, {study.scene} — {S.caption(study)}"
                  " (× = diverged)", fontsize=9)
     return S.save_figure(fig, study.out / "sparse_noisy.png")
 
@@ -70,8 +74,7 @@ def summary(study: S.Study, rows: list[dict]) -> Path:
             ("projection_rel_l2/all/median", "projection"), ("energy_rel_err/max", "energy err"),
             ("diverged_fraction", "diverged"), ("train_seconds", "train s")]
     text = (f"# Sparse and noisy observations ({study.scene}, {study.mode} settings)\n\n"
-            f"Machine: {study.machine()}. Command: `python experiments/sparse_noisy.py"
-            f"{'' if study.mode == 'reduced' else ' --' + study.mode}`.\n\n" + S.markdown_table(rows, cols))
+            f"Machine: {study.machine()}. Command: `{study.command()}`.\n\n" + S.markdown_table(rows, cols))
     return S.write_text_atomic(study.out / "summary.md", text)
 
 

@@ -283,7 +283,7 @@ def plot(study: S.Study, rows: list[dict]) -> Path:
     ax.set_ylabel("test field_rel_l2 (all), median")
     ax.set_title("Resolution transfer (grids not seen in training)", fontsize=9)
     ax.legend(fontsize=7)
-    fig.suptitle(f"Stability, {study.scene} — {S.caption(study, 'python experiments/stability.py')}", fontsize=9)
+    fig.suptitle(f"Stability, {study.scene} — {S.caption(study)}", fontsize=9)
     return S.save_figure(fig, study.out / "stability.png")
 
 
@@ -320,9 +320,7 @@ def summary(study: S.Study, rows: list[dict]) -> Path:
                 row[key] = r["field_rel_l2/all/median"]
         res.append(row)
     text = [f"# Stability study ({study.scene}, {study.mode} settings)\n\n",
-            f"Machine: {study.machine()}. Command: `python experiments/stability.py"
-            f"{'' if study.mode == 'reduced' else ' --' + study.mode}"
-            f"{'' if study.scene == 'pendulum' else ' --scene ' + study.scene}`.\n\n",
+            f"Machine: {study.machine()}. Command: `{study.command()}`.\n\n",
             S.markdown_table(table, [("method", "method"), ("integrator", "integrator"),
                                      ("drift20", "energy drift 20×"), ("vpt20", "vpt 20× [s]"),
                                      ("drift200", "energy drift 200×"), ("vpt200", "vpt 200× [s]"),

@@ -115,6 +115,12 @@ class Study:
 
         return OmegaConf.load(ROOT / "conf" / "experiment" / f"{self.scene}.yaml")
 
+    def command(self) -> str:
+        """The command line that reruns this study (its mode and scene), as summaries and captions print it."""
+        mode = "" if self.mode == "reduced" else f" --{self.mode}"
+        scene = "" if self.scene == "pendulum" else f" --scene {self.scene}"
+        return f"python experiments/{self.name}.py{mode}{scene}"
+
     def supports(self, name: str) -> bool:
         """Whether method `name` can run this study's scene (see UNSUPPORTED)."""
         return self.scene not in UNSUPPORTED.get(name, set())
@@ -301,8 +307,8 @@ def log_axes(ax: Any, legend_size: int = 7, x_base: float = 10) -> None:
     ax.legend(fontsize=legend_size)
 
 
-def caption(study: Study, command: str) -> str:
-    return f"{command} · {study.mode} settings · {study.machine()}"
+def caption(study: Study) -> str:
+    return f"{study.command()} · {study.mode} settings · {study.machine()}"
 
 
 def fmt(x: Any, digits: int = 3) -> str:

@@ -134,6 +134,24 @@ def test_roofline_study_smoke(studies):
     assert (out / "roofline.png").stat().st_size > 0
 
 
+def test_roofline_study_on_the_double_pendulum_and_its_refusal_of_the_fem_scene(studies):
+    """The double pendulum's steps carry d = 2 (its FLOPs grow with the jet), POD is left out (its count is for
+    d = 1); the elastic scene is refused with an error that says why, not charted as a pendulum."""
+    out, _ = _study("roofline", studies, "--scene", "double_pendulum", tag="-double_pendulum")
+    rows = _csv(out / "roofline.csv")
+    assert _methods(rows) == {"lnf", "latent_mlp"}
+    summary = (out / "summary.md").read_text()
+    assert "double_pendulum, d = 2" in summary and "--scene double_pendulum" in summary
+    pendulum = _csv(studies / "roofline-smoke" / "roofline.csv") if (studies / "roofline-smoke").is_dir() else None
+    if pendulum:  # the same width, batch and points: a d = 2 jet has more streams than a d = 1 one
+        one = {(r["width"], r["batch"]): float(r["flops"]) for r in pendulum if r["method"] == "lnf"}
+        assert all(float(r["flops"]) > one[(r["width"], r["batch"])] for r in rows if r["method"] == "lnf")
+    proc = subprocess.run([sys.executable, "experiments/roofline.py", "--smoke", "--scene", "elastic", "--out",
+                           str(studies / "roofline-elastic")], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert proc.returncode != 0 and "--scene elastic" in proc.stderr and "∇_X φ" in proc.stderr
+    assert not (studies / "roofline-elastic" / "roofline.csv").exists()
+
+
 def test_pareto_study_smoke_on_the_elastic_scene(studies):
     """A scene that trains with the tabulated pullback: the exact one is its variant, no nodal full-order model,
     and the FEM's own cost per trajectory is measured, drawn and compared."""
