@@ -119,15 +119,9 @@ def checkpoints(study: S.Study, sweep: str) -> list[tuple[int, Path]]:
 
 
 def experiment_dynamics(study: S.Study) -> str:
-    """The dynamics config the scene experiment selects (``tabulated`` for the elastic cantilever), else ``lagrangian``."""
-    from omegaconf import OmegaConf
-
-    for item in study.experiment().get("defaults") or []:
-        if isinstance(item, dict) or OmegaConf.is_dict(item):
-            for key, value in dict(item).items():
-                if str(key).split()[-1].lstrip("/") == "dynamics":
-                    return str(value)
-    return "lagrangian"
+    """The dynamics config the scene experiment selects (``tabulated`` for the elastic cantilever, else the
+    default ``lagrangian``)."""
+    return str(study.composed().hydra.runtime.choices.dynamics)
 
 
 def tabulated_sweeps(study: S.Study) -> None:

@@ -11,8 +11,8 @@ Gauss–Legendre 8², the 16 test trajectories rolled out at once) is marked. Wr
 roofline.png and summary.md into outputs/studies/roofline/.
 
 The FLOP count covers the q̃-jets of the field's values, which is all the pendulum scenes' Lagrangians
-need (pendulum, bump, double pendulum). The elastic scenes' strain energy also needs ∇_X φ and its
-q̃-derivatives, which this count does not model: they are refused with an error (their cost is charted by
+need (pendulum, bump, double pendulum). A potential that also needs ∇_X φ and its q̃-derivatives (the
+elastic scenes' strain energy) is not modelled: such a scene is refused with an error (their cost is charted by
 pareto.py against the FEM, and by cost_scaling.py). POD-Galerkin's FLOP count is for d = 1, so it is
 drawn on the d = 1 scenes only.
 """
@@ -20,8 +20,8 @@ from __future__ import annotations
 
 import sys
 import time
-from typing import Any
 from pathlib import Path
+from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import studylib as S  # noqa: E402
@@ -63,19 +63,21 @@ def step_flops(batch: int, points: int, width: int, depth: int, latent: int, in_
 
 def scene_of(study: S.Study) -> tuple[Any, int, int, int]:
     """The study's scene (built from its composed experiment config) and the experiment's latent dimension,
-    Gauss–Legendre order and SIREN width."""
-    from hydra import compose, initialize_config_dir
+    Gauss–Legendre order and SIREN width. A scene whose potential needs ∇_X φ is refused: the FLOP model
+    does not count those jets."""
     from omegaconf import OmegaConf
 
     from lnf.model import build
 
-    if study.scene in S.FEM_SCENES:
+    cfg = study.composed()
+    scene = build(OmegaConf.to_container(cfg.scene, resolve=True))
+    rule = build(OmegaConf.to_container(cfg.quadrature, resolve=True)).build(scene.bounds)
+    if scene.potential(rule).needs_gradient:
         sys.exit(f"roofline.py --scene {study.scene}: the FLOP model counts the q̃-jets of the field's values; "
-                 f"the strain energy of {study.scene!r} also needs ∇_X φ, which it does not count. Expected one of "
-                 f"pendulum, bump, double_pendulum (the FEM scenes' cost is in pareto.py and cost_scaling.py)")
-    with initialize_config_dir(str(S.ROOT / "conf"), version_base=None):
-        cfg = compose("train", overrides=[f"+experiment={study.scene}"])
-    return build(OmegaConf.to_container(cfg.scene, resolve=True)), int(cfg.model.latent_dim), int(cfg.quadrature.order), int(cfg.model.width)
+                 f"the potential of {study.scene!r} (a strain energy) also needs ∇_X φ, which it does not count. "
+                 f"Expected a scene whose potential takes the field's values only: pendulum, bump, double_pendulum "
+                 f"(the elastic scenes' cost is in pareto.py and cost_scaling.py)")
+    return scene, int(cfg.model.latent_dim), int(cfg.quadrature.order), int(cfg.model.width)
 
 
 def baselines(study: S.Study, scene: Any, latent: int, peak: float, batch: int, order: int) -> list[dict]:

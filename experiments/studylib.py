@@ -115,6 +115,14 @@ class Study:
 
         return OmegaConf.load(ROOT / "conf" / "experiment" / f"{self.scene}.yaml")
 
+    def composed(self) -> Any:
+        """The training config as `python -m lnf.train +experiment=<scene>` composes it, with its `hydra` node
+        (`hydra.runtime.choices` names the option chosen in each config group)."""
+        from hydra import compose, initialize_config_dir
+
+        with initialize_config_dir(str(ROOT / "conf"), version_base=None):
+            return compose("train", overrides=[f"+experiment={self.scene}"], return_hydra_config=True)
+
     def command(self) -> str:
         """The command line that reruns this study (its mode and scene), as summaries and captions print it."""
         mode = "" if self.mode == "reduced" else f" --{self.mode}"

@@ -127,8 +127,9 @@ def evaluate(cfg: DictConfig) -> dict[str, float]:
     if cfg.get("initial_states") is not None:
         initial = read_initial_states(cfg.initial_states)
         if initial.ndim != 2 or initial.shape[1] != split.states.shape[-1] or not np.isfinite(initial).all():
+            got = repr(initial.tolist()) if initial.size <= 16 else f"an array of shape {initial.shape}"  # e.g. a mesh's state
             raise ValueError(f"initial_states must be a list of finite full-order states, each of "
-                             f"{split.states.shape[-1]} numbers {tuple(scene.state_names)}, got {initial.tolist()!r}")
+                             f"{split.states.shape[-1]} numbers {tuple(scene.state_names)}, got {got}")
         states, stored_times, n = scene.simulate(initial, times), False, len(initial)
     else:
         states = split.states[:n] if stored_times else scene.simulate(split.states[:n, 0], times)
