@@ -2,19 +2,22 @@
 
     python experiments/roofline.py                 # widths 64/128/256 × 1…64 trajectories, GL 8² (default)
     python experiments/roofline.py --smoke
-    python experiments/roofline.py --scene bump    # the scene's latent dimension and field (not the FEM scenes)
+    python experiments/roofline.py --scene bump    # the scene's latent dimension, field and quadrature
+    python experiments/roofline.py --scene elastic # + the ∇_X φ jets of its strain energy
 
 The bound of a step is the matmul FLOPs it needs — value, J and H of the modulated SIREN at the
-quadrature points, four accelerations per RK4 step — divided by the best matmul throughput measured
-on this machine in the same run (large float32 GEMMs). The experiment's configuration (on the pendulum width 256, depth 2,
-Gauss–Legendre 8², the 16 test trajectories rolled out at once) is marked. Writes roofline.csv,
-roofline.png and summary.md into outputs/studies/roofline/.
+quadrature points (and, where the potential depends on the field gradient, ∇_X φ and ∂(∇_X φ)/∂q̃), four
+accelerations per RK4 step — divided by the best matmul throughput measured on this machine in the same
+run (large float32 GEMMs). The experiment's configuration (on the pendulum width 256, depth 2, Gauss–Legendre
+8², the 16 test trajectories rolled out at once) is marked. Writes roofline.csv, roofline.png and
+summary.md into outputs/studies/roofline/.
 
-The FLOP count covers the q̃-jets of the field's values, which is all the pendulum scenes' Lagrangians
-need (pendulum, bump, double pendulum). A potential that also needs ∇_X φ and its q̃-derivatives (the
-elastic scenes' strain energy) is not modelled: such a scene is refused with an error (their cost is charted by
-pareto.py against the FEM, and by cost_scaling.py). POD-Galerkin's FLOP count is for d = 1, so it is
-drawn on the d = 1 scenes only.
+The count is that of `ModulatedSiren.jet`'s forward-mode streams: 1 value, d first q̃-derivatives,
+d(d+1)/2 second ones, and on a scene whose potential needs ∇_X φ (the elastic scenes' strain energy) dim_B
+X-derivatives and dim_B·d mixed ones. It times the exact pullback (`dynamics=lagrangian`); the elastic
+experiment rolls out a Chebyshev table built from it (`dynamics=tabulated`), whose cost is charted by
+pareto.py. POD-Galerkin's FLOP count is that of a scalar field's values at d = 1, so it is drawn on the
+pendulum and the bump only.
 """
 from __future__ import annotations
 
@@ -54,33 +57,48 @@ def matmul_peak(sizes) -> tuple[float, str]:
     return best, shape
 
 
-def step_flops(batch: int, points: int, width: int, depth: int, latent: int, in_dim: int, out_dim: int) -> float:
-    """Matmul FLOPs of one RK4 step: 4 accelerations, each a jet of order 2 (value, J, H) at every point."""
+def jet_streams(latent: int, in_dim: int, spatial: bool) -> int:
+    """Forward-mode streams of one order-2 jet (`ModulatedSiren.jet(order=2, spatial=...)`): value, d first and
+    d(d+1)/2 second q̃-derivatives, and with `spatial` dim_B X-derivatives and dim_B·d mixed ones."""
     streams = 1 + latent + latent * (latent + 1) // 2
+    return streams + (in_dim + in_dim * latent if spatial else 0)
+
+
+def step_flops(batch: int, points: int, width: int, depth: int, latent: int, in_dim: int, out_dim: int,
+               spatial: bool = False) -> float:
+    """Matmul FLOPs of one RK4 step: 4 accelerations, each an order-2 jet at every point (the first layer's
+    derivatives are constants, so only its values are a product)."""
+    streams = jet_streams(latent, in_dim, spatial)
     per_point = 2 * in_dim * width + (depth - 1) * streams * 2 * width * width + streams * 2 * width * out_dim
     return 4.0 * batch * points * per_point
 
 
-def scene_of(study: S.Study) -> tuple[Any, int, int, int]:
+def order_text(order: Any) -> str:
+    """'8²' for a square Gauss–Legendre rule, '12×6' for a rectangular one."""
+    if isinstance(order, (list, tuple)):
+        return f"{order[0]}²" if len(set(order)) == 1 else "×".join(str(o) for o in order)
+    return f"{order}²"
+
+
+def scene_of(study: S.Study) -> tuple[Any, int, Any, int, bool, bool]:
     """The study's scene (built from its composed experiment config) and the experiment's latent dimension,
-    Gauss–Legendre order and SIREN width. A scene whose potential needs ∇_X φ is refused: the FLOP model
-    does not count those jets."""
+    Gauss–Legendre order (an int or one per axis), SIREN width, clamp, and whether its potential needs ∇_X φ."""
     from omegaconf import OmegaConf
 
     from lnf.model import build
 
     cfg = study.composed()
     scene = build(OmegaConf.to_container(cfg.scene, resolve=True))
+    if not str(cfg.quadrature.get("_target_", "")).endswith("GaussLegendre"):
+        sys.exit(f"roofline.py --scene {study.scene}: expected the experiment to use a Gauss–Legendre quadrature "
+                 f"(quadrature=gauss_legendre), got {cfg.quadrature.get('_target_')!r}")
+    order = OmegaConf.to_container(cfg.quadrature, resolve=True)["order"]
     rule = build(OmegaConf.to_container(cfg.quadrature, resolve=True)).build(scene.bounds)
-    if scene.potential(rule).needs_gradient:
-        sys.exit(f"roofline.py --scene {study.scene}: the FLOP model counts the q̃-jets of the field's values; "
-                 f"the potential of {study.scene!r} (a strain energy) also needs ∇_X φ, which it does not count. "
-                 f"Expected a scene whose potential takes the field's values only: pendulum, bump, double_pendulum "
-                 f"(the elastic scenes' cost is in pareto.py and cost_scaling.py)")
-    return scene, int(cfg.model.latent_dim), int(cfg.quadrature.order), int(cfg.model.width)
+    spatial = bool(scene.potential(rule).needs_gradient)
+    return scene, int(cfg.model.latent_dim), order, int(cfg.model.width), bool(cfg.model.get("clamp", False)), spatial
 
 
-def baselines(study: S.Study, scene: Any, latent: int, peak: float, batch: int, order: int) -> list[dict]:
+def baselines(study: S.Study, scene: Any, latent: int, peak: float, batch: int, order: Any, spatial: bool) -> list[dict]:
     """The same RK4 step for the baselines (their FLOPs: the dense products of one acceleration, × 4)."""
     import torch
 
@@ -91,8 +109,8 @@ def baselines(study: S.Study, scene: Any, latent: int, peak: float, batch: int, 
 
     rk4, smoke = RK4(), study.mode == "smoke"
     rows, cases = [], []
-    N, mlp_width, d = order**2, 64, latent
-    if d == 1:
+    N, mlp_width, d = len(GaussLegendre(order).build(scene.bounds).points), 64, latent
+    if d == 1 and not spatial and scene.field_dim == 1:  # the FLOP count below is that of a scalar field's values
         pod = PODGalerkin(scene, latent_dim=1, quadrature=GaussLegendre(order))
         pod.field.modes.normal_()
         pod.fitted.fill_(True)
@@ -134,7 +152,7 @@ def main(argv=None) -> None:
     torch.set_num_threads(study.threads)
     torch.manual_seed(0)
     smoke = study.mode == "smoke"
-    scene, latent, order, default_width = scene_of(study)
+    scene, latent, order, default_width, clamp, spatial = scene_of(study)
     order = args.order or order
     widths = [16, 32] if smoke else [64, 128, 256]
     batches = [1, 2] if smoke else [1, 4, 16, 64]
@@ -144,20 +162,22 @@ def main(argv=None) -> None:
     rk4 = RK4()
     with torch.no_grad():
         for w in widths:
-            model = LagrangianNeuralField(scene, latent_dim=latent, width=w, quadrature=GaussLegendre(order)).eval()
+            model = LagrangianNeuralField(scene, latent_dim=latent, width=w, quadrature=GaussLegendre(order),
+                                          clamp=clamp).eval()
             dyn = model.dynamics()
-            N = len(dyn.points)
+            siren = getattr(model.field, "field", model.field)  # inside a ClampedField
+            N, depth = len(dyn.points), siren.depth
             for b in batches:
                 q, v = 0.5 * torch.randn(b, latent), torch.randn(b, latent)
                 seconds = timeit(lambda: rk4.step(dyn, (q, v), 0.05, 0.0), min_seconds=0.05 if smoke else 0.5)
-                flops = step_flops(b, N, w, model.field.depth, latent, scene.body_dim, scene.field_dim)
+                flops = step_flops(b, N, w, depth, latent, scene.body_dim, scene.field_dim, spatial)
                 bound = flops / peak
                 rows.append({"method": "lnf", "width": w, "batch": b, "points": N, "flops": flops, "seconds": seconds,
                              "bound_seconds": bound, "ratio": seconds / bound, "gflops_achieved": flops / seconds / 1e9,
                              "matmul_peak_gflops": peak / 1e9, "default": w == default_width and b == DEFAULT_BATCH})
                 print(f"[roofline] width {w:>3}, B={b:>2}: {seconds * 1e3:8.2f} ms/step, bound {bound * 1e3:7.2f} ms, "
                       f"{seconds / bound:5.1f}× the bound", flush=True)
-    rows += baselines(study, scene, latent, peak, batches[-2] if len(batches) > 1 else batches[0], order)
+    rows += baselines(study, scene, latent, peak, batches[-2] if len(batches) > 1 else batches[0], order, spatial)
     csv_path = study.write_csv("roofline.csv", rows)
 
     import matplotlib
@@ -183,7 +203,8 @@ def main(argv=None) -> None:
                    label=f"default: width {default_width}, B = {DEFAULT_BATCH} ({dflt[0]['ratio']:.1f}× bound)")
     ax.set_xscale("log")
     ax.set_yscale("log")
-    ax.set_xlabel(f"matmul FLOPs of one RK4 step (value, J, H at {order}² Gauss–Legendre points)")
+    jets = "value, J, H, ∇_X φ, ∂(∇_X φ)/∂q̃" if spatial else "value, J, H"
+    ax.set_xlabel(f"matmul FLOPs of one RK4 step ({jets} at {order_text(order)} Gauss–Legendre points)")
     ax.set_ylabel("measured time of one RK4 step [s]")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=7)
@@ -191,7 +212,8 @@ def main(argv=None) -> None:
     fig_path = S.save_figure(fig, study.out / "roofline.png")
     text = (f"# Roofline ({study.scene}, d = {latent}, {study.mode} settings)\n\nMachine: {study.machine()}; matmul "
             f"peak {peak / 1e9:.1f} GFLOP/s ({shape}). Command: `{study.command()}`.\n\n"
-            + (f"Default configuration (width {default_width}, B = {DEFAULT_BATCH}, GL {order}²): {dflt[0]['seconds'] * 1e3:.2f} ms per RK4 step, "
+            + (f"Default configuration (width {default_width}, B = {DEFAULT_BATCH}, GL {order_text(order)}"
+               f"{', exact pullback with ∇_X φ jets' if spatial else ''}): {dflt[0]['seconds'] * 1e3:.2f} ms per RK4 step, "
                f"{dflt[0]['ratio']:.2f}× the bound.\n\n" if dflt else "")
             + S.markdown_table(rows, [("method", "method"), ("width", "width"), ("batch", "B"), ("points", "points"), ("flops", "FLOPs/step"),
                                       ("seconds", "s/step"), ("bound_seconds", "bound s"), ("ratio", "× bound"),

@@ -52,6 +52,15 @@ def build_loggers(cfg: DictConfig, output_dir: Path) -> list[Any]:
     return loggers
 
 
+def save_checkpoint_atomic(trainer: pl.Trainer, path: Path) -> None:
+    """`trainer.save_checkpoint` to a temporary name, then renamed: a run killed while writing never leaves a
+    half-written `path` (every rank calls it; rank 0 writes)."""
+    tmp = path.with_name(path.name + ".tmp")
+    trainer.save_checkpoint(tmp)
+    if trainer.is_global_zero:
+        os.replace(tmp, path)
+
+
 def resolve_checkpoint(ckpt_path: Optional[str], output_dir: Path) -> Optional[str]:
     """The checkpoint to resume from: `ckpt_path` = null (when a killed run's output dir is reused, resume
     from the newest of ``checkpoints/last.ckpt`` and Lightning's SLURM ``hpc_ckpt_*.ckpt``; else start
@@ -119,9 +128,10 @@ def train(cfg: DictConfig) -> dict[str, float]:
         fit_info.update(fit_latent_dynamics(model, datamodule))
     train_seconds = time.perf_counter() - start
     trainer.test(module, datamodule=datamodule, verbose=False)
-    if not model.trainable or getattr(model, "latent_dynamics", None) is not None:
-        # the checkpoint that lnf.load / lnf.evaluate read must hold what was fitted after (or instead of) training
-        trainer.save_checkpoint(output_dir / "checkpoints" / "last.ckpt")
+    # last.ckpt, which lnf.load and lnf.evaluate read, holds the weights the test evaluated: what was fitted after
+    # (or instead of) training, and the steps a max_time stop took after the last validation. (After the test:
+    # a model fitted in closed form is attached to the trainer only there.)
+    save_checkpoint_atomic(trainer, output_dir / "checkpoints" / "last.ckpt")
 
     metrics = {k: float(v) for k, v in evaluation.test_metrics.items()}
     metrics["train_seconds"] = train_seconds

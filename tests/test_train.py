@@ -175,6 +175,25 @@ def test_each_baseline_is_trained_and_evaluated_by_the_same_entry_point(name, tm
     assert res["field_rel_l2/all/median"] == pytest.approx(saved["field_rel_l2/all/median"], rel=1e-3)
 
 
+def test_last_checkpoint_holds_the_weights_the_run_tested(tmp_path):
+    """last.ckpt is the last epoch, not the best one: lnf.evaluate of it reproduces the run's own test metrics even
+    when the best epoch is an earlier one (here the best-epoch callback is told that a higher validation loss is
+    better). Lightning 2.6's save_last=True copied last.ckpt only when a better epoch was saved."""
+    cfg = compose_config("train", ["+experiment=pendulum", "trainer=smoke", "trainer.max_epochs=3", "logger=csv", *TINY,
+                                   "callbacks.checkpoint.mode=max"], tmp_path)
+    metrics = train(cfg)
+    ckpts = Path(cfg.paths.output_dir) / "checkpoints"
+    best = sorted(ckpts.glob("epoch*.ckpt"))
+    assert len(best) == 1 and sorted(p.name for p in ckpts.iterdir()) == [best[0].name, "last.ckpt"]
+    last = torch.load(ckpts / "last.ckpt", map_location="cpu", weights_only=False)
+    first = torch.load(best[0], map_location="cpu", weights_only=False)
+    assert last["global_step"] > first["global_step"]
+    res = evaluate(compose_config("evaluate", [f"ckpt_path={ckpts / 'last.ckpt'}", "figures=0", "max_reduction_points=64"],
+                                  tmp_path / "eval"))
+    for key in ("field_rel_l2/all/median", "projection_rel_l2/all/median", "latent_rmse/median"):
+        assert res[key] == pytest.approx(metrics[key], rel=1e-5), key
+
+
 def test_latent_dynamics_need_a_neural_field(tmp_path):
     cfg = compose_config("train", ["+experiment=pendulum", "model=pod", "dynamics=latent_mlp"], tmp_path)
     with pytest.raises(ValueError, match="needs model=lnf"):
