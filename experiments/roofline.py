@@ -92,10 +92,10 @@ def scene_of(study: S.Study) -> tuple[Any, int, Any, int, bool, bool]:
     if not str(cfg.quadrature.get("_target_", "")).endswith("GaussLegendre"):
         sys.exit(f"roofline.py --scene {study.scene}: expected the experiment to use a Gauss–Legendre quadrature "
                  f"(quadrature=gauss_legendre), got {cfg.quadrature.get('_target_')!r}")
-    order = OmegaConf.to_container(cfg.quadrature, resolve=True)["order"]
-    rule = build(OmegaConf.to_container(cfg.quadrature, resolve=True)).build(scene.bounds)
-    spatial = bool(scene.potential(rule).needs_gradient)
-    return scene, int(cfg.model.latent_dim), order, int(cfg.model.width), bool(cfg.model.get("clamp", False)), spatial
+    quadrature = OmegaConf.to_container(cfg.quadrature, resolve=True)
+    spatial = bool(scene.potential(build(quadrature).build(scene.bounds)).needs_gradient)
+    return (scene, int(cfg.model.latent_dim), quadrature["order"], int(cfg.model.width),
+            bool(cfg.model.get("clamp", False)), spatial)
 
 
 def baselines(study: S.Study, scene: Any, latent: int, peak: float, batch: int, order: Any, spatial: bool) -> list[dict]:

@@ -162,29 +162,24 @@ def test_roofline_study_on_the_double_pendulum_and_the_elastic_scene(studies):
 
 
 @pytest.mark.parametrize("experiment", ["pendulum", "double_pendulum", "elastic"])
-def test_roofline_flop_model_matches_torch_flop_counter(experiment):
+def test_roofline_flop_model_matches_torch_flop_counter(experiment, tmp_path):
     """roofline.step_flops is the matmul count of ModulatedSiren.jet's streams: torch's own FlopCounterMode, run on
     one acceleration of the exact pullback, counts the same within the small contractions the model leaves out."""
     import torch
-    from hydra import compose, initialize_config_dir
-    from omegaconf import OmegaConf
     from torch.utils.flop_counter import FlopCounterMode
 
-    from lnf.model import LagrangianNeuralField, build
+    from lnf.model import LagrangianNeuralField
     from lnf.quadrature import GaussLegendre
 
     sys.path.insert(0, str(ROOT / "experiments"))
-    from roofline import step_flops
+    import studylib
+    from roofline import scene_of, step_flops
 
-    with initialize_config_dir(str(ROOT / "conf"), version_base="1.3"):
-        cfg = compose("train", overrides=[f"+experiment={experiment}"])
-    scene = build(OmegaConf.to_container(cfg.scene, resolve=True))
-    rule = GaussLegendre(OmegaConf.to_container(cfg.quadrature, resolve=True)["order"])
-    spatial = scene.potential(rule.build(scene.bounds)).needs_gradient
+    study = studylib.Study(name="roofline", scene=experiment, mode="smoke", out=tmp_path, threads=1)
+    scene, d, order, _, clamp, spatial = scene_of(study)  # as roofline.py --scene <experiment> builds it
     assert spatial == (experiment == "elastic")
-    d, width, batch = int(cfg.model.latent_dim), 64, 8
-    model = LagrangianNeuralField(scene, latent_dim=d, width=width, quadrature=rule,
-                                  clamp=bool(cfg.model.get("clamp", False))).eval()
+    width, batch = 64, 8
+    model = LagrangianNeuralField(scene, latent_dim=d, width=width, quadrature=GaussLegendre(order), clamp=clamp).eval()
     dyn = model.dynamics()
     with torch.no_grad(), FlopCounterMode(display=False) as counter:
         dyn.acceleration(0.1 * torch.randn(batch, d), torch.randn(batch, d))
