@@ -163,13 +163,8 @@ def checkpoint(path: Path, trajectory: int = 0) -> None:
     qpts = quad.points.to(q)
     jet = model.field.jet(q, qpts, order=1, spatial=True)
     ours = torch.einsum("bnaki,bi->bnak", jet.GJ, qdot).detach().numpy()
-    X, h = qpts.numpy().astype(np.float64), 1e-4
-
-    def velocity(P: np.ndarray) -> np.ndarray:  # the FEM's velocity field at points P, (T, N, 2)
-        return scene.fields(states, P)[1]
-
-    fem = np.stack([(velocity(X + [h, 0]) - velocity(X - [h, 0])) / (2 * h),
-                    (velocity(X + [0, h]) - velocity(X - [0, h])) / (2 * h)], -1)
+    X = qpts.numpy().astype(np.float64)
+    fem = scene.velocity_gradients(states, X)  # the FEM's exact ∇_X u̇ (T, N, 2, 2)
     err = np.linalg.norm((ours - fem).reshape(len(ours), len(X), -1), axis=(0, 2))
     ref = np.linalg.norm(fem.reshape(len(ours), len(X), -1), axis=(0, 2))
     print(f"velocity-gradient relative error: {np.linalg.norm(ours - fem) / np.linalg.norm(fem):.3f} overall; by X₁:")
@@ -211,7 +206,7 @@ def rayleigh_ritz(model, low: float, high: float, modes: int = 12) -> dict[str, 
     import torch
 
     scene = model.scene
-    u_g, mode, K = scene._modal_reference()
+    u_g, mode, K = scene.modal_reference()
     nodes = torch.as_tensor(scene.mesh.nodes)
     q0 = _equilibrium_code(model.lagrangian_dynamics(), low, high)
     with torch.no_grad():
@@ -221,7 +216,7 @@ def rayleigh_ritz(model, low: float, high: float, modes: int = 12) -> dict[str, 
     c = (m2 * t) @ phi / ((m2 * phi) @ phi)
     e = t - c * phi
     energy = e @ (K @ e)
-    free = scene._free
+    free = scene.free_dofs
     k = min(modes, len(free) - 2)
     values, vectors = spla.eigsh(K[free][:, free].tocsc(), k=k, M=sp.diags(m2[free]).tocsc(), sigma=0, which="LM")
     low_modes = float(((vectors.T @ (m2[free] * e[free])) ** 2 * values).sum() / energy)

@@ -165,8 +165,7 @@ def main(argv=None) -> None:
             model = LagrangianNeuralField(scene, latent_dim=latent, width=w, quadrature=GaussLegendre(order),
                                           clamp=clamp).eval()
             dyn = model.dynamics()
-            siren = getattr(model.field, "field", model.field)  # inside a ClampedField
-            N, depth = len(dyn.points), siren.depth
+            N, depth = len(dyn.points), model.field.depth
             for b in batches:
                 q, v = 0.5 * torch.randn(b, latent), torch.randn(b, latent)
                 seconds = timeit(lambda: rk4.step(dyn, (q, v), 0.05, 0.0), min_seconds=0.05 if smoke else 0.5)

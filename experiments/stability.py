@@ -47,30 +47,22 @@ class StressCases:
     train_edge: float  # the training range ends at this level (shaded in the chart)
     train_text: str
     rotation: Optional[tuple[float, ...]] = None
+    unit: float = 1.0  # the scene's release amplitude of level 1 (π: levels are θ0 / π)
 
     def states(self, scene: Any, level: float) -> np.ndarray:
-        """The full-order initial state (state_dim,) of `level` for `scene`."""
-        name = type(scene).__name__
-        if name in ("LiftedPendulum", "BumpPendulum"):
-            return np.array([level * np.pi, 0.0])
-        if name == "LiftedDoublePendulum":  # both links at θ0, at rest
-            return np.array([level * np.pi, level * np.pi, 0.0, 0.0])
-        if name == "ElasticCantilever":  # the scene's release with tip deflection `level`, at rest, unloaded
-            load = np.array([0.0, float(np.mean(scene.load_frequency_range))])
-            return scene.pack(scene.release_shape(np.array([level])), scene.release_velocity(np.array([0.0])),
-                              load[None])[0]
-        raise ValueError(f"stability.py has no high-energy states for scene {name}")
+        """The full-order initial state (state_dim,) of `level` for `scene`: its release at rest."""
+        return scene.released_at_rest(level * self.unit)
 
 
 PENDULUM_CASES = StressCases((0.5, 0.7, 0.85, 0.95, 0.99), "θ0 / π (released at rest; 1 = separatrix)", 0.5,
-                             "training range |θ0| ≤ π/2", rotation=(0.0, 7.0))
+                             "training range |θ0| ≤ π/2", rotation=(0.0, 7.0), unit=np.pi)
 ELASTIC_CASES = StressCases((0.15, 0.2, 0.25, 0.3, 0.4), "tip deflection of the release at rest δ [m]", 0.15,
                             "training range |δ| ≤ 0.15 m")
 HIGH_ENERGY: dict[str, StressCases] = {
     "pendulum": PENDULUM_CASES,
     "bump": PENDULUM_CASES,  # the bump rides on a pendulum angle with the pendulum's training range
     "double_pendulum": StressCases((0.5, 0.7, 0.85, 0.95, 0.99), "θ1(0) = θ2(0) = θ0, at rest: θ0 / π", 0.5,
-                                   "training range |θ_i| ≤ π/2"),
+                                   "training range |θ_i| ≤ π/2", unit=np.pi),
     "elastic": ELASTIC_CASES,
     "elastic_actuated": ELASTIC_CASES,
 }

@@ -31,6 +31,11 @@ class ClampedField(nn.Module):
     def latent_dim(self) -> int:
         return self.field.latent_dim
 
+    @property
+    def depth(self) -> int:
+        """Sine layers of the wrapped field."""
+        return self.field.depth
+
     def forward(self, codes: Tensor, points: Tensor) -> Tensor:
         """φ(q̃, X): codes (B, d), points (N, dim_B) or (B, N, dim_B) → values (B, N, dim_A)."""
         s, _ = self.factor(points)

@@ -12,6 +12,7 @@ def test_clamped_field_is_zero_on_the_clamp_and_its_jet_matches_autodiff():
     scene = ElasticCantilever(mesh=(4, 2))
     siren = ModulatedSiren(latent_dim=2, in_dim=2, out_dim=2, width=16, depth=2, w0=3.0, hyper_width=8).double()
     field = ClampedField(siren, scene.clamp_factor)
+    assert (field.latent_dim, field.depth) == (2, 2)  # what the roofline study reads of the field
     codes = torch.randn(3, 2, dtype=torch.float64)
     points = torch.rand(5, 2, dtype=torch.float64) * torch.tensor([1.0, 0.4], dtype=torch.float64)
     clamp = points.clone()

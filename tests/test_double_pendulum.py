@@ -72,3 +72,10 @@ def test_bad_parameters_are_named():
         LiftedDoublePendulum(lengths=(1.0, -1.0))
     with pytest.raises(ValueError, match="scene.modes"):
         LiftedDoublePendulum(modes=((3, 4), (3, 4)))
+
+
+def test_release_at_rest_puts_both_links_at_the_amplitude_with_no_kinetic_energy(scene):
+    state = scene.released_at_rest(0.7)
+    np.testing.assert_array_equal(state, [0.7, 0.7, 0.0, 0.0])
+    kinetic, potential = scene.true_energy_parts(state)
+    assert kinetic == 0 and potential > scene.true_energy_parts(scene.released_at_rest(0.0))[1]

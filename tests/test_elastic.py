@@ -127,7 +127,7 @@ def test_modal_release_is_an_equilibrium_that_excites_one_mode(rng):
     the fast modes nearly at rest, where the Euler–Bernoulli shape (not an FEM equilibrium) does not."""
     small = dict(mesh=(12, 4), tip_speed_range=(0.0, 0.0), deflection_range=(-0.05, 0.05))
     modal = ElasticCantilever(release="modal", **small)
-    u_g, mode, _ = modal._modal_reference()
+    u_g, mode, _ = modal.modal_reference()
     assert mode[modal._tip, 1].mean() == pytest.approx(1.0)
     K = modal.mesh.tangent_stiffness(u_g, modal.lam, modal.mu)
     Km = (K @ mode.reshape(-1)).reshape(-1, 2)[~modal.mesh.clamped]
@@ -165,14 +165,29 @@ def test_field_gradients_are_exact_for_an_affine_displacement(scene, rng):
     np.testing.assert_allclose(G[0], np.broadcast_to(A, (9, 2, 2)), atol=1e-12)
 
 
-def test_field_gradients_match_differences_of_the_interpolated_field(scene, rng):
+def test_field_and_velocity_gradients_match_differences_of_the_interpolated_fields(scene, rng):
     states = scene.sample_initial_states(2, rng)
     points = np.array([[0.31, 0.13], [0.77, 0.29]])  # inside cells, away from their edges
-    G = scene.field_gradients(states, points)
+    G, Gv = scene.field_gradients(states, points), scene.velocity_gradients(states, points)
+    assert np.abs(Gv).max() > 0 and not np.allclose(G, Gv)
     h = 1e-6
     for j in range(2):
         step = np.zeros(2)
         step[j] = h
-        up, _ = scene.fields(states, points + step)
-        down, _ = scene.fields(states, points - step)
+        up, v_up = scene.fields(states, points + step)
+        down, v_down = scene.fields(states, points - step)
         np.testing.assert_allclose(G[..., j], (up - down) / (2 * h), atol=1e-7)
+        np.testing.assert_allclose(Gv[..., j], (v_up - v_down) / (2 * h), atol=1e-7)
+
+
+def test_release_at_rest_has_the_asked_tip_deflection_no_velocity_and_no_load(scene):
+    """The stability study's high-energy states: at rest, unloaded, the tip moved by the amplitude from the
+    amplitude-0 release (the first mode's linear response, so within a few % at small deflections)."""
+    rest, released = scene.released_at_rest(0.0), scene.released_at_rest(0.05)
+    u0, v0, load0 = scene.unpack(rest)
+    u, v, load = scene.unpack(released)
+    assert released.shape == (4 * scene.n_nodes + 2,)
+    assert np.all(v == 0) and np.all(v0 == 0) and load[0] == 0 and load0[0] == 0
+    assert scene.true_energy_parts(released)[0] == 0
+    tip = scene.mesh.nodes[:, 0] == scene.mesh.nodes[:, 0].max()
+    assert np.mean(u[tip, 1] - u0[tip, 1]) == pytest.approx(0.05, rel=0.05)

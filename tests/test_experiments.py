@@ -78,6 +78,7 @@ def test_pareto_study_smoke(studies):
     assert "reusing" in again and "done in" not in again
 
 
+@pytest.mark.xdist_group("stability_models")  # cost scaling reuses the stability models
 def test_stability_study_smoke(studies):
     out, _ = _study("stability", studies)
     rows = _csv(out / "stability.csv")
@@ -88,6 +89,7 @@ def test_stability_study_smoke(studies):
     assert (out / "stability.png").stat().st_size > 0 and "largest ok dt" in (out / "summary.md").read_text()
 
 
+@pytest.mark.xdist_group("stability_models")
 def test_cost_scaling_study_smoke_reuses_the_stability_models(studies):
     out, stdout = _study("cost_scaling", studies)
     assert "reusing" in stdout
@@ -348,7 +350,7 @@ def test_rayleigh_ritz_of_the_exact_mode():
     from lnf.scenes.elastic import ElasticCantilever
 
     scene = ElasticCantilever(mesh=(8, 4), release="modal")
-    u_g, mode, _ = scene._modal_reference()
+    u_g, mode, _ = scene.modal_reference()
     axial = np.stack([scene.mesh.nodes[:, 0] ** 2, 0 * scene.mesh.nodes[:, 0]], -1)  # u₁ ∝ X₁²: pure stretching
 
     class Curve:  # u(q) = u_g + q (φ₁ + ε a), rest at q = 0

@@ -132,6 +132,12 @@ class Scene:
     def sample_initial_states(self, n: int, rng: np.random.Generator) -> np.ndarray:
         raise NotImplementedError
 
+    def released_at_rest(self, amplitude: float) -> np.ndarray:
+        """The full-order state (S,) released at rest with `amplitude`, in the scene's own measure of how far
+        from rest it starts (an angle in rad, a tip deflection in m): the high-energy states of the stability
+        study."""
+        raise NotImplementedError(f"scene {self.name!r} defines no release at rest")
+
     def simulate(self, initial_states: np.ndarray, times: np.ndarray) -> np.ndarray:
         """Ground-truth full-order states (n, T, S) at `times` from initial states (n, S)."""
         raise NotImplementedError

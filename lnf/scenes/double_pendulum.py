@@ -144,6 +144,10 @@ class LiftedDoublePendulum(Scene):
         omega = rng.uniform(*self.omega0_range, size=(n, 2))
         return np.concatenate([theta, omega], axis=-1)
 
+    def released_at_rest(self, amplitude: float) -> np.ndarray:
+        """Both links at θ1 = θ2 = amplitude [rad], at rest: (θ1, θ2, ω1, ω2)."""
+        return np.array([float(amplitude), float(amplitude), 0.0, 0.0])
+
     def simulate(self, initial_states: np.ndarray, times: np.ndarray) -> np.ndarray:
         def rhs(_t: float, y: np.ndarray) -> np.ndarray:
             return np.concatenate([y[2:], self.acceleration(y[:2], y[2:])])

@@ -146,7 +146,7 @@ class ElasticCantilever(Scene):
         if not (np.isfinite(self.time_step) and self.time_step > 0):
             raise ValueError(f"scene.time_step must be a positive number [s], got {time_step!r}")
         self.nodal_mass = self.rho * self.mesh.nodal_area  # (nn,)
-        self._free = np.flatnonzero(np.repeat(~self.mesh.clamped, 2))  # unclamped nodal dofs of u.reshape(-1)
+        self.free_dofs = np.flatnonzero(np.repeat(~self.mesh.clamped, 2))  # unclamped nodal dofs of u.reshape(-1)
         self._tip = np.flatnonzero(self.mesh.nodes[:, 0] == self.length)
         self._modal: Optional[tuple[np.ndarray, np.ndarray, sp.csr_matrix]] = None  # (u_g, first mode, K_t at u_g)
         self._energy_scale: Optional[float] = None  # computed on first use (the modal one needs Newton solves)
@@ -159,7 +159,7 @@ class ElasticCantilever(Scene):
         if self._energy_scale is None:
             delta = max(abs(v) for v in self.deflection_range)
             if self.release == "modal":
-                _, mode, K = self._modal_reference()
+                _, mode, K = self.modal_reference()
                 flat = mode.reshape(-1)
                 stiffness = float(flat @ (K @ flat))
                 speed = max(abs(v) for v in self.tip_speed_range)
@@ -221,7 +221,7 @@ class ElasticCantilever(Scene):
         u = np.zeros((self.n_nodes, 2)) if start is None else np.array(start, dtype=np.float64)
         load = np.zeros((self.n_nodes, 2)) if nodal_load is None else np.array(nodal_load, dtype=np.float64)
         load[:, 1] -= self.nodal_mass * self.gravity
-        free = self._free
+        free = self.free_dofs
         scale = max(np.abs(load).sum(), 1e-300)
         for _ in range(max_iter):
             residual = (self.mesh.internal_force(u[None], self.lam, self.mu)[0] + load).reshape(-1)[free]
@@ -235,12 +235,12 @@ class ElasticCantilever(Scene):
         raise RuntimeError(f"elastic static equilibrium (load {np.abs(load).sum():.4g} N/m) did not converge in "
                            f"{max_iter} Newton steps; reduce scene.deflection_range")
 
-    def _modal_reference(self) -> tuple[np.ndarray, np.ndarray, sp.csr_matrix]:
+    def modal_reference(self) -> tuple[np.ndarray, np.ndarray, sp.csr_matrix]:
         """(equilibrium under gravity u_g, first bending mode about it scaled to a unit tip deflection), (nn, 2)
         each, and the tangent stiffness K_t there (2 nn × 2 nn), computed once."""
         if self._modal is None:
             u_g = self.static_equilibrium()
-            free = self._free
+            free = self.free_dofs
             K_g = self.mesh.tangent_stiffness(u_g, self.lam, self.mu)
             mass = np.repeat(self.nodal_mass, 2)[free]
             _, vectors = spla.eigsh(K_g[free][:, free].tocsc(), k=1, M=sp.diags(mass).tocsc(), sigma=0, which="LM")
@@ -253,14 +253,14 @@ class ElasticCantilever(Scene):
     def modal_release(self, tip: np.ndarray) -> np.ndarray:
         """Equilibria (n, nn, 2) under gravity and the modal load K_t δ φ₁ (the inertial load of the first mode
         at a turning point, whose linear response is δ φ₁), for tip deflections δ = `tip` (n,)."""
-        u_g, mode, K = self._modal_reference()
+        u_g, mode, K = self.modal_reference()
         unit_load = -(K @ mode.reshape(-1)).reshape(self.n_nodes, 2)  # K_t φ₁ = ω₁² M φ₁ (a force on the body)
         return np.stack([self.static_equilibrium(-float(t) * unit_load, start=u_g) for t in np.asarray(tip).reshape(-1)])
 
     def release_velocity(self, speed: np.ndarray) -> np.ndarray:
         """Initial nodal velocities (n, nn, 2) with tip speeds `speed` (n,), in the release's shape."""
         if self.release == "modal":
-            _, mode, _ = self._modal_reference()
+            _, mode, _ = self.modal_reference()
             return np.asarray(speed, dtype=np.float64)[:, None, None] * mode[None]
         return self.beam_shape(speed)
 
@@ -291,6 +291,13 @@ class ElasticCantilever(Scene):
         load = np.stack([rng.uniform(*self.load_amplitude_range, size=n),
                          rng.uniform(*self.load_frequency_range, size=n)], -1)
         return self.pack(self.release_shape(tip), self.release_velocity(speed), load)
+
+    def released_at_rest(self, amplitude: float) -> np.ndarray:
+        """The release shape with tip deflection `amplitude` [m], at rest and unloaded (amplitude 0 at the
+        middle of the load-frequency range)."""
+        load = np.array([[0.0, float(np.mean(self.load_frequency_range))]])
+        return self.pack(self.release_shape(np.array([float(amplitude)])), self.release_velocity(np.array([0.0])),
+                         load)[0]
 
     def external_force(self, t: float, load: np.ndarray) -> np.ndarray:
         """Nodal actuation forces (n, nn, 2) at time t for load parameters (n, 2) (lumped)."""
@@ -348,9 +355,16 @@ class ElasticCantilever(Scene):
 
     def field_gradients(self, states: np.ndarray, points: np.ndarray) -> np.ndarray:
         """∇_X u (…, N, 2, 2) [component a, direction j] of the FEM's bilinear displacement at points (N, 2)."""
-        u, _, _ = self.unpack(np.asarray(states))
-        lead, N = u.shape[:-2], len(points)
-        flat = u.reshape(-1, self.n_nodes, 2).transpose(1, 0, 2).reshape(self.n_nodes, -1)  # (nn, B·2)
+        return self._interpolated_gradients(self.unpack(np.asarray(states))[0], points)
+
+    def velocity_gradients(self, states: np.ndarray, points: np.ndarray) -> np.ndarray:
+        """∇_X u̇ (…, N, 2, 2) [component a, direction j] [1/s] of the FEM's bilinear velocity at points (N, 2)."""
+        return self._interpolated_gradients(self.unpack(np.asarray(states))[1], points)
+
+    def _interpolated_gradients(self, nodal: np.ndarray, points: np.ndarray) -> np.ndarray:
+        """∇_X of the bilinear interpolant of nodal vectors (…, nn, 2) at points (N, 2) → (…, N, 2, 2)."""
+        lead, N = nodal.shape[:-2], len(points)
+        flat = nodal.reshape(-1, self.n_nodes, 2).transpose(1, 0, 2).reshape(self.n_nodes, -1)  # (nn, B·2)
         parts = [(D @ flat).reshape(N, -1, 2) for D in self.mesh.interpolation_gradient(np.asarray(points, np.float64))]
         G = np.stack(parts, -1).transpose(1, 0, 2, 3)  # (B, N, 2a, 2j)
         return G.reshape(*lead, N, 2, 2)

@@ -103,6 +103,10 @@ class LiftedPendulum(Scene):
         omega = rng.uniform(*self.omega0_range, size=n)
         return np.stack([theta, omega], axis=-1)
 
+    def released_at_rest(self, amplitude: float) -> np.ndarray:
+        """(θ, ω) = (amplitude [rad], 0)."""
+        return np.array([float(amplitude), 0.0])
+
     def simulate(self, initial_states: np.ndarray, times: np.ndarray) -> np.ndarray:
         k = self.gravity / self.length
 
