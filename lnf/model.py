@@ -177,8 +177,12 @@ class LagrangianNeuralField(ReducedModel):
         density = self._density(points)
         return self._reduce(points, values, density, steps or self.reduction_steps)
 
+    def _start(self, points: Tensor, values: Tensor, density: Tensor) -> Optional[Tensor]:
+        """The K steps' initial codes (B, d): the best of the start grid, or None (q̃^0 = 0) with one start."""
+        return best_start(self.field, points, values, density, self.starts) if len(self.starts) > 1 else None
+
     def _reduce(self, points: Tensor, values: Tensor, density: Tensor, steps: int) -> Tensor:
-        codes = best_start(self.field, points, values, density, self.starts) if len(self.starts) > 1 else None
+        codes = self._start(points, values, density)
         return reduce(self.field, points, values, density, self.step_size, steps, codes=codes)
 
     def dynamics(self, quadrature: "Quadrature | QuadratureRule | None" = None) -> Any:
@@ -263,14 +267,17 @@ class LagrangianNeuralField(ReducedModel):
         """
         density = self._density(points)
         K = self.reduction_steps
-        codes = self._reduce(points, values, density, K)
+        start = self._start(points, values, density)
+        codes = reduce(self.field, points, values, density, self.step_size, K, codes=start)
         use_gradients = self.gradient_weight > 0 and gradients is not None
         jet = self.field.jet(codes, points, order=1, spatial=use_gradients)
         rec = reconstruction_loss(jet.value, values, density)
         volume = math.prod(hi - lo for lo, hi in self.scene.bounds)
         weights = volume * density / points.shape[-2]  # Monte-Carlo quadrature of the observed points
         mass = pullback_mass_matrix(jet.J, weights)
-        reprojected = self._reduce(points, jet.value, density, K)
+        # ρ̃(φ(q̃)) from the snapshot's own start: the search is a constant of the graph, and where ℓ^r is small
+        # a second search over φ(q̃) lands on the same candidate at the cost of another S^d forward passes
+        reprojected = reduce(self.field, points, jet.value, density, self.step_size, K, codes=start)
         proj = projection_loss(codes, reprojected, mass)
         total = rec + proj
         out = {"reconstruction": rec.mean(), "projection": proj.mean()}

@@ -4,7 +4,7 @@ import torch
 
 from lnf.model import LagrangianNeuralField
 from lnf.quadrature import midpoint_grid
-from lnf.reduction import projection_loss, reduce
+from lnf.reduction import projection_loss, pullback_mass_matrix, reduce
 from lnf.scenes import LiftedPendulum
 
 
@@ -153,3 +153,24 @@ def test_multi_start_reduction_finds_a_code_far_from_zero():
     assert (far.reduce(points, values) - codes).abs().max() < 0.08
     with pytest.raises(ValueError, match="reduction_starts"):
         LagrangianNeuralField(LiftedPendulum(), reduction_starts=0)
+
+
+def test_training_reprojection_starts_from_the_snapshot_start():
+    """In `losses` ρ̃(φ(q̃)) reuses the snapshot's start (one search per step); far from q̃ = 0 that gives the
+    projection loss of a fresh search, where starting from 0 would leave the codes far off."""
+    model = _model(1)
+    points = midpoint_grid(16, model.scene.bounds).double()
+    codes = torch.tensor([[2.6], [-2.2]], dtype=torch.float64)
+    values = model.decode(codes, points)
+    far = LagrangianNeuralField(LiftedPendulum(), latent_dim=1, width=32, hyper_init_scale=1.0, reduction_starts=41,
+                                start_radius=3.0).double()
+    far.load_state_dict(model.state_dict())
+    batched = points.expand(2, -1, -1)
+    out = far.losses(batched, values)
+    reduced = far.reduce(batched, values)
+    assert torch.equal(out["codes"], reduced)
+    jet = far.field.jet(reduced, batched, order=1)
+    weights = far._density(batched) * 4.0 / points.shape[0]  # the scene's body is [−1, 1]²
+    expected = projection_loss(reduced, far.reduce(batched, jet.value), pullback_mass_matrix(jet.J, weights))
+    assert torch.allclose(out["projection"], expected.mean(), rtol=1e-8, atol=1e-14)
+    assert out["projection"] < 1e-3
