@@ -128,6 +128,30 @@ def test_model_size_plot_draws_diverged_runs(tmp_path):
     assert plot(study, rows, others, 0.1, None).stat().st_size > 0
 
 
+def test_sparse_noisy_plot_legends_only_what_it_draws(tmp_path, monkeypatch):
+    """A method the scene cannot run gets no legend entry; a diverged full-order reference gets no line at
+    infinity but says "diverged" in the legend (the bump: the nodal model does not keep its shape)."""
+    sys.path.insert(0, str(ROOT / "experiments"))
+    import matplotlib.axes
+    import studylib
+    from sparse_noisy import ERR, plot
+
+    legends = []
+    draw = matplotlib.axes.Axes.legend
+    monkeypatch.setattr(matplotlib.axes.Axes, "legend", lambda ax, *a, **k: legends.append(
+        [t for t in ax.get_legend_handles_labels()[1]]) or draw(ax, *a, **k))
+    study = studylib.Study(name="sparse_noisy", scene="elastic_actuated", mode="smoke", out=tmp_path, threads=1)
+    rows = [{"method": m, "knob": "fraction", "data.observed_fraction": f, ERR: e, "diverged_fraction": 0}
+            for m in ("lnf", "pod") for f, e in [(0.25, 0.1), (0.05, float("inf"))]]
+    rows += [{"method": "lnf", "knob": "noise", "data.observed_fraction": 0.25, "data.noise": 0.1, ERR: 0.12},
+             {"method": "full_order", "knob": "reference", ERR: float("inf"), "diverged_fraction": 1}]
+    assert plot(study, rows).stat().st_size > 0
+    assert len(legends) == 2
+    for labels in legends:
+        assert studylib.LABELS["latent_mlp"] not in labels and studylib.LABELS["lnf"] in labels
+        assert "full order (no training data): diverged" in labels
+
+
 def test_roofline_study_smoke(studies):
     out, stdout = _study("roofline", studies)
     rows = _csv(out / "roofline.csv")
