@@ -4,7 +4,7 @@ A dataset file holds, for the splits ``train``/``val``/``test`` (disjoint trajec
 states, their energies, and the configuration and velocity fields sampled on a fine evaluation grid and
 on a coarse observation grid, plus each trajectory's fixed random mask of observed coarse points.
 
-Layout (``FORMAT_VERSION`` 1)::
+Layout (``FORMAT_VERSION`` 2)::
 
     attrs: format_version (int), lnf_scene (json of scene.spec()), lnf_generation (json of the
            DatasetConfig), scene_name (str)
@@ -19,17 +19,29 @@ Layout (``FORMAT_VERSION`` 1)::
     /{split}/coarse_velocities   (n, T, Nc, A)   float32
     /{split}/masks               (n, Nc)         bool     exactly round(observed_fraction·Nc) True per row
 
+Every dataset carries the attribute ``lnf_checksum = "blake2b:<hex>"``: BLAKE2b (64-byte digest) of its
+values as little-endian bytes in C order (version 2 adds it; version 1 files are regenerated).
+
 Files are written atomically (temporary file, then ``os.replace``), so a file at the target path is
 always complete; a temporary left by a killed writer is removed by the next generation of that file.
-Every user-facing failure raises :class:`DatasetError` naming the file and the key.
+Before writing, the free space is checked and the file's size is reserved (``posix_fallocate``), so a full
+disk fails cleanly before HDF5 writes (HDF5 can crash on a failed write). A reused file is verified:
+every checksum, and every float value finite (read one trajectory at a time); a damaged file is
+regenerated (``on_mismatch="regenerate"``) or refused (``"error"``). A file at an explicitly chosen path
+is never overwritten with other settings when ``overwrite_other_settings=False`` (the DataModule's
+choice for an explicit ``data.path``). Every user-facing failure raises :class:`DatasetError` naming the
+file and the key.
 """
 from __future__ import annotations
 
 import contextlib
+import errno
+import hashlib
 import json
 import logging
 import math
 import os
+import shutil
 import socket
 from dataclasses import asdict, dataclass, fields as dataclass_fields
 from glob import escape as glob_escape
@@ -40,16 +52,32 @@ import h5py
 import numpy as np
 
 from lnf.quadrature import midpoint_grid
+from lnf.tempfiles import writer_is_gone
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
 SPLITS = ("train", "val", "test")
-FIX_HINT = "delete the file or set data.on_mismatch=regenerate to regenerate it"
+CHECKSUM_ATTR = "lnf_checksum"
+CHECKSUM_ALGORITHM = "blake2b"
+FIELD_KEYS = ("fields", "velocities", "coarse_fields", "coarse_velocities")
+SPLIT_KEYS = ("states", "energy", "masks") + FIELD_KEYS
+# fix hints, by situation: ensure_dataset under on_mismatch="error" (regeneration is not automatic) ...
+ERROR_HINT = "set data.on_mismatch=regenerate to regenerate it, or delete the file"
+FIX_HINT = ERROR_HINT  # the name of earlier versions
+# ... and load_split, which does not regenerate, but ensure_dataset (run first by lnf.train/lnf.evaluate) does
+LOAD_HINT = ("lnf.dataset.ensure_dataset regenerates it (lnf.train and lnf.evaluate run it first, with the "
+             "default data.on_mismatch=regenerate)")
+BLOCK_BYTES = 4 << 20  # verification reads blocks of whole rows (trajectories) of at most this size (≥ 1 row)
 
 log = logging.getLogger("lnf.dataset")
 
 
 class DatasetError(ValueError):
     """A dataset file or dataset setting is unusable; the message names the file/key and the fix."""
+
+
+class _Damaged(DatasetError):
+    """A damaged file (unreadable, missing or inconsistent dataset, bad checksum, NaN/inf): the message names
+    the file and the key but no fix, which depends on the caller (regenerated, refused, or only loaded)."""
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -166,9 +194,17 @@ def _expected(scene: Any, cfg: Optional[DatasetConfig]) -> dict[str, Any]:
     return exp
 
 
-def _mismatch_message(path: Path, diffs: list[str]) -> str:
-    return (f"{path}: dataset was generated with different settings ({'; '.join(diffs)}); "
-            f"{FIX_HINT}")
+def _mismatch_message(path: Path, diffs: list[str], hint: str = ERROR_HINT) -> str:
+    return f"{path}: dataset was generated with different settings ({'; '.join(diffs)}); {hint}"
+
+
+def _kept_message(path: Path, detail: str) -> str:
+    """A file at an explicit path made with other settings: not overwritten; the differences and the fixes."""
+    return (f"{path}: the file at this explicitly given data.path was generated with other settings ({detail}; "
+            f"'file' = the settings of the run that generated it, 'config' = this run's). A file at an explicit "
+            f"data.path is not overwritten with other settings (another run may be using it): give these settings "
+            f"another data.path, or set data.path=null (path: null) for one file per setting set under "
+            f"data.data_dir, or delete the file to regenerate it")
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -180,11 +216,11 @@ def _open(path: Path) -> Iterator[h5py.File]:
     try:
         f = h5py.File(path, "r")
     except OSError as exc:
-        raise DatasetError(f"{path}: file is corrupt or not an HDF5 file ({exc}); {FIX_HINT}") from exc
+        raise _Damaged(f"{path}: file is corrupt or not an HDF5 file ({exc})") from exc
     try:
         yield f
     except (OSError, RuntimeError, KeyError) as exc:  # read errors inside a damaged file
-        raise DatasetError(f"{path}: file is corrupt, reading failed ({exc}); {FIX_HINT}") from exc
+        raise _Damaged(f"{path}: file is corrupt, reading failed ({exc})") from exc
     finally:
         f.close()
 
@@ -193,7 +229,12 @@ def _read_attributes(f: h5py.File, path: Path) -> dict[str, Any]:
     """Parsed root attrs {format_version, scene, generation, scene_name}; absent ones are None."""
     out: dict[str, Any] = {}
     version = f.attrs.get("format_version")
-    out["format_version"] = int(version) if version is not None and np.ndim(version) == 0 else version
+    try:
+        out["format_version"] = int(version) if version is not None and np.ndim(version) == 0 else version
+    except (TypeError, ValueError):  # e.g. a string
+        out["format_version"] = str(version)
+    if isinstance(out["format_version"], np.ndarray):  # json-able, for the messages
+        out["format_version"] = out["format_version"].tolist()
     for key, attr in (("scene", "lnf_scene"), ("generation", "lnf_generation")):
         raw = f.attrs.get(attr)
         if raw is None:
@@ -202,25 +243,26 @@ def _read_attributes(f: h5py.File, path: Path) -> dict[str, Any]:
         try:
             out[key] = json.loads(raw.decode() if isinstance(raw, bytes) else str(raw))
         except ValueError as exc:
-            raise DatasetError(f"{path}: root attribute {attr} is not valid JSON ({exc}); {FIX_HINT}") from exc
+            raise _Damaged(f"{path}: root attribute {attr} is not valid JSON ({exc})") from exc
     name = f.attrs.get("scene_name")
     out["scene_name"] = name.decode() if isinstance(name, bytes) else name
     return out
 
 
 def _check_version(path: Path, attrs: Mapping[str, Any]) -> None:
+    """load_split's check of the root attribute format_version (ensure_dataset regenerates other versions)."""
     version = attrs.get("format_version")
     if version is None:
         raise DatasetError(f"{path}: root attribute format_version is missing, this lnf reads "
-                           f"{FORMAT_VERSION}; regenerate it ({FIX_HINT})")
+                           f"{FORMAT_VERSION}; {LOAD_HINT}")
     if version != FORMAT_VERSION:
         raise DatasetError(f"{path}: file has format_version {version}, this lnf reads {FORMAT_VERSION}; "
-                           f"regenerate it ({FIX_HINT})")
+                           f"{LOAD_HINT}")
 
 
 def _dataset(f: h5py.File, path: Path, key: str) -> h5py.Dataset:
     if key not in f or not isinstance(f[key], h5py.Dataset):
-        raise DatasetError(f"{path}: dataset /{key} is missing; {FIX_HINT}")
+        raise _Damaged(f"{path}: dataset /{key} is missing")
     return f[key]
 
 
@@ -228,8 +270,8 @@ def _expect_shape(path: Path, key: str, shape: tuple[int, ...], expected: tuple[
     """`expected` holds ints or None (any size); len must match."""
     if len(shape) != len(expected) or any(e is not None and s != e for s, e in zip(shape, expected)):
         want = "(" + ", ".join("*" if e is None else str(e) for e in expected) + ")"
-        raise DatasetError(f"{path}: dataset /{key} has shape {shape}, expected {want} "
-                           f"(inconsistent with the other datasets); {FIX_HINT}")
+        raise _Damaged(f"{path}: dataset /{key} has shape {shape}, expected {want} "
+                       f"(inconsistent with the other datasets)")
 
 
 def _check_structure(f: h5py.File, path: Path, splits: tuple[str, ...]) -> None:
@@ -243,7 +285,7 @@ def _check_structure(f: h5py.File, path: Path, splits: tuple[str, ...]) -> None:
     (T,), (Nf, _), (Nc, _) = T, fine, coarse
     for split in splits:
         if split not in f or not isinstance(f[split], h5py.Group):
-            raise DatasetError(f"{path}: split group /{split} is missing; {FIX_HINT}")
+            raise _Damaged(f"{path}: split group /{split} is missing")
         states = _dataset(f, path, f"{split}/states").shape
         _expect_shape(path, f"{split}/states", states, (None, T, None))
         n = states[0]
@@ -257,21 +299,92 @@ def _check_structure(f: h5py.File, path: Path, splits: tuple[str, ...]) -> None:
         masks_ds = _dataset(f, path, f"{split}/masks")
         _expect_shape(path, f"{split}/masks", masks_ds.shape, (n, Nc))
         if masks_ds.dtype != np.bool_:
-            raise DatasetError(f"{path}: dataset /{split}/masks has dtype {masks_ds.dtype}, expected bool; {FIX_HINT}")
+            raise _Damaged(f"{path}: dataset /{split}/masks has dtype {masks_ds.dtype}, expected bool")
         counts = masks_ds[...].sum(axis=1)
         if counts.size and (counts.min() != counts.max() or counts.min() < 1):
-            raise DatasetError(f"{path}: dataset /{split}/masks must hold the same number (≥ 1) of observed "
-                               f"points per trajectory, got counts from {counts.min()} to {counts.max()}; {FIX_HINT}")
+            raise _Damaged(f"{path}: dataset /{split}/masks must hold the same number (≥ 1) of observed "
+                           f"points per trajectory, got counts from {counts.min()} to {counts.max()}")
 
 
-def _read_finite(f: h5py.File, path: Path, key: str) -> np.ndarray:
-    """Read a float dataset; any NaN or inf → DatasetError naming /key and the count."""
-    data = _dataset(f, path, key)[...]
-    bad = ~np.isfinite(data)
-    if bad.any():
-        n_nan = int(np.isnan(data).sum())
-        raise DatasetError(f"{path}: dataset /{key} contains {int(bad.sum())} non-finite values "
-                           f"({n_nan} NaN, {int(bad.sum()) - n_nan} inf); the file is damaged: delete it to regenerate it")
+def dataset_keys(splits: tuple[str, ...] = SPLITS) -> list[str]:
+    """Keys of the datasets a file holds (shared ones, then those of `splits`), in the order written."""
+    return ["times", "grids/fine", "grids/coarse"] + [f"{s}/{k}" for s in splits for k in SPLIT_KEYS]
+
+
+def _little_endian(data: np.ndarray) -> np.ndarray:
+    """`data` as a C-contiguous little-endian array (no copy when it already is one): the bytes hashed."""
+    return np.ascontiguousarray(data, dtype=data.dtype.newbyteorder("<"))
+
+
+def _non_finite(data: np.ndarray) -> tuple[int, int]:
+    """(NaN count, inf count) of `data`; (0, 0) for non-float data."""
+    if data.dtype.kind not in "fc":
+        return 0, 0
+    finite = np.isfinite(data)
+    if finite.all():
+        return 0, 0
+    n_nan = int(np.isnan(data).sum())
+    return n_nan, int(finite.size - finite.sum()) - n_nan
+
+
+def _scan(ds: h5py.Dataset) -> tuple[str, int, int]:
+    """Checksum and (NaN, inf) counts of `ds`, read in blocks of whole rows (one trajectory of the big
+    arrays at a time, ≤ BLOCK_BYTES unless one row is larger) into one reused buffer: bounded memory."""
+    if ds.ndim == 0 or ds.shape[0] == 0 or ds.size == 0:
+        data = np.asarray(ds[()])
+        return _checksum(data), *_non_finite(data)
+    h = hashlib.blake2b()
+    n, row_shape = ds.shape[0], ds.shape[1:]
+    dtype = ds.dtype.newbyteorder("=")
+    rows = int(min(n, max(1, BLOCK_BYTES // max(1, int(np.prod(row_shape)) * dtype.itemsize))))
+    buffer = np.empty((rows, *row_shape), dtype=dtype)
+    n_nan = n_inf = 0
+    for start in range(0, n, rows):
+        k = min(rows, n - start)
+        block = buffer[:k]
+        ds.read_direct(block, np.s_[start:start + k], np.s_[0:k])
+        h.update(_little_endian(block))
+        a, b = _non_finite(block)
+        n_nan, n_inf = n_nan + a, n_inf + b
+    return f"{CHECKSUM_ALGORITHM}:{h.hexdigest()}", n_nan, n_inf
+
+
+def _checksum(data: np.ndarray) -> str:
+    """The lnf_checksum of an in-memory array."""
+    return f"{CHECKSUM_ALGORITHM}:{hashlib.blake2b(_little_endian(np.asarray(data))).hexdigest()}"
+
+
+def _verify(ds: h5py.Dataset, path: Path, key: str, data: Optional[np.ndarray] = None) -> None:
+    """NaN/inf, then the stored checksum of dataset /key (of `data`, its values already read, if given;
+    else read block by block); any problem → _Damaged naming the file and /key."""
+    if data is None:
+        digest, n_nan, n_inf = _scan(ds)
+    else:
+        digest, (n_nan, n_inf) = _checksum(data), _non_finite(data)
+    if n_nan or n_inf:
+        raise _Damaged(f"{path}: dataset /{key} contains {n_nan + n_inf} non-finite values "
+                       f"({n_nan} NaN, {n_inf} inf); the file is corrupt")
+    stored = ds.attrs.get(CHECKSUM_ATTR)
+    stored = stored.decode() if isinstance(stored, bytes) else stored
+    if stored is None:
+        raise _Damaged(f"{path}: dataset /{key} has no {CHECKSUM_ATTR} attribute (expected "
+                       f"'{CHECKSUM_ALGORITHM}:<hex>'); the file is corrupt or was not written by lnf")
+    if str(stored) != digest:
+        raise _Damaged(f"{path}: dataset /{key} does not match its {CHECKSUM_ATTR} (stored {str(stored)[:24]}…, "
+                       f"computed {digest[:24]}…): its values changed after it was written; the file is corrupt")
+
+
+def _verify_all(f: h5py.File, path: Path, splits: tuple[str, ...] = SPLITS) -> None:
+    """Checksums and finiteness of every dataset of the shared part and of `splits`."""
+    for key in dataset_keys(splits):
+        _verify(_dataset(f, path, key), path, key)
+
+
+def _read_verified(f: h5py.File, path: Path, key: str) -> np.ndarray:
+    """Read dataset /key whole, check it is finite and matches its checksum (→ _Damaged naming /key)."""
+    ds = _dataset(f, path, key)
+    data = ds[...]
+    _verify(ds, path, key, data)
     return data
 
 
@@ -300,9 +413,17 @@ def _create(group: h5py.Group, name: str, shape: tuple[int, ...], dtype: Any) ->
     return group.create_dataset(name, shape=shape, dtype=dtype, chunks=chunks)
 
 
+def _write_array(group: h5py.Group, name: str, data: np.ndarray) -> h5py.Dataset:
+    """A dataset holding `data`, with its checksum attribute."""
+    ds = group.create_dataset(name, data=data)
+    ds.attrs[CHECKSUM_ATTR] = _checksum(np.asarray(data, dtype=ds.dtype))
+    return ds
+
+
 def _write_split(group: h5py.Group, scene: Any, initial: np.ndarray, masks: np.ndarray, times: np.ndarray,
                  fine: np.ndarray, coarse: np.ndarray) -> None:
-    """Simulate `initial` (n, S) over `times` and write one split, trajectory by trajectory."""
+    """Simulate `initial` (n, S) over `times` and write one split, trajectory by trajectory, hashing each
+    (n, T, N, A) field array as it is written."""
     states = np.asarray(scene.simulate(initial, times), dtype=np.float64)
     n, T = len(initial), len(times)
     if states.ndim != 3 or states.shape[:2] != (n, T):
@@ -310,16 +431,20 @@ def _write_split(group: h5py.Group, scene: Any, initial: np.ndarray, masks: np.n
     if not np.isfinite(states).all():
         raise DatasetError(f"scene {scene.name}: simulate() returned {int((~np.isfinite(states)).sum())} "
                            f"non-finite state values for split {group.name}")
-    group.create_dataset("states", data=states)
-    group.create_dataset("energy", data=np.asarray(scene.true_energy(states), dtype=np.float64))
-    group.create_dataset("masks", data=masks)
+    _write_array(group, "states", states)
+    _write_array(group, "energy", np.asarray(scene.true_energy(states), dtype=np.float64))
+    _write_array(group, "masks", masks)
     A = scene.field_dim
     out = {key: _create(group, key, (n, T, len(pts), A), np.float32)
-           for key, pts in (("fields", fine), ("velocities", fine),
-                            ("coarse_fields", coarse), ("coarse_velocities", coarse))}
+           for key, pts in zip(FIELD_KEYS, (fine, fine, coarse, coarse))}
+    hashes = {key: hashlib.blake2b() for key in FIELD_KEYS}
     for i in range(n):
-        out["fields"][i], out["velocities"][i] = _scene_fields(scene, states[i], fine)
-        out["coarse_fields"][i], out["coarse_velocities"][i] = _scene_fields(scene, states[i], coarse)
+        values = (*_scene_fields(scene, states[i], fine), *_scene_fields(scene, states[i], coarse))
+        for key, value in zip(FIELD_KEYS, values):
+            out[key][i] = value
+            hashes[key].update(_little_endian(value))
+    for key in FIELD_KEYS:
+        out[key].attrs[CHECKSUM_ATTR] = f"{CHECKSUM_ALGORITHM}:{hashes[key].hexdigest()}"
 
 
 def _draw(scene: Any, cfg: DatasetConfig, n_coarse: int) -> tuple[np.ndarray, np.ndarray]:
@@ -346,44 +471,134 @@ def _remove_stale_temporaries(path: Path) -> None:
     prefix = f"{path.name}.tmp-{socket.gethostname()}-"
     for tmp in path.parent.glob(glob_escape(prefix) + "*"):
         pid = tmp.name[len(prefix):]
-        if not pid.isdigit():
-            continue
-        try:
-            os.kill(int(pid), 0)
-        except ProcessLookupError:
+        if writer_is_gone(pid):
             log.warning("removing %s, left by an interrupted generation (process %s is gone)", tmp, pid)
             tmp.unlink(missing_ok=True)
-        except PermissionError:  # alive, another user's
-            pass
+
+
+def _needed_bytes(n: int, T: int, S: int, Nf: int, Nc: int, dim: int, A: int) -> int:
+    """An upper bound of the file's size: the arrays' bytes (n trajectories, T samples, S state entries,
+    Nf/Nc points in dim_B = `dim`, A field components) + 1 %, 128 bytes of index per field chunk (HDF5 needs
+    ~70), and 1 MiB of metadata."""
+    data = T * 8 + (Nf + Nc) * dim * 4 + n * (T * S * 8 + T * 8 + Nc + 2 * T * (Nf + Nc) * A * 4)
+    return int(data * 1.01) + 128 * (4 * n * T) + (1 << 20)
+
+
+def _size(n_bytes: float) -> str:
+    """Bytes in MB (GB from 1 GB on), decimal units."""
+    return f"{n_bytes / 1e9:.2f} GB" if n_bytes >= 1e9 else f"{n_bytes / 1e6:.1f} MB"
+
+
+def _free_bytes(directory: Path) -> Optional[int]:
+    """Free space on the file system of `directory` (None if it cannot be read)."""
+    try:
+        return int(shutil.disk_usage(directory).free)
+    except OSError:
+        return None
+
+
+def _check_free_space(path: Path, needed: int) -> None:
+    """DatasetError naming the file, the space needed and the space free, if the disk cannot hold it."""
+    free = _free_bytes(path.parent)
+    if free is not None and free < needed:
+        raise DatasetError(f"{path}: not enough free disk space to generate the dataset: it needs about "
+                           f"{_size(needed)}, {path.parent} has {_size(free)} free; free some space or point "
+                           f"data.path (or data.data_dir) at another disk")
+
+
+def _preallocate(tmp: Path, needed: int) -> None:
+    """Reserve `needed` bytes for the (just created, still closed) HDF5 file `tmp`, so that a disk filling
+    up meanwhile fails here with an OSError, not inside HDF5, whose failed writes can crash the process.
+    HDF5, which reopens the file, truncates it to its contents on close. A file system that cannot
+    preallocate is skipped; ENOSPC, EDQUOT and EFBIG are raised."""
+    if not hasattr(os, "posix_fallocate"):
+        return
+    fd = os.open(tmp, os.O_RDWR)
+    try:
+        os.posix_fallocate(fd, 0, needed)
+    except OSError as exc:
+        if exc.errno in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG):
+            raise
+        log.debug("cannot preallocate %s (%s); writing without a reservation", tmp, exc)
+    finally:
+        os.close(fd)
+
+
+def _abandon(f: Optional[h5py.File]) -> None:
+    """Close `f` after a failed write, ignoring the errors of flushing what could not be written."""
+    if f is None:
+        return
+    try:
+        f.close()
+    except Exception as exc:  # noqa: BLE001 - the write already failed; this only releases the handle
+        log.debug("closing a failed dataset file raised %r", exc)
+
+
+def _is_write_failure(exc: BaseException) -> bool:
+    """An OSError, or an error raised inside h5py (a failed flush raises RuntimeError), not the scene's."""
+    if isinstance(exc, OSError):
+        return True
+    if not isinstance(exc, RuntimeError) or exc.__traceback__ is None:
+        return False
+    tb = exc.__traceback__
+    while tb.tb_next is not None:
+        tb = tb.tb_next
+    return f"{os.sep}h5py{os.sep}" in tb.tb_frame.f_code.co_filename or \
+        tb.tb_frame.f_code.co_filename.startswith("h5py")
+
+
+def _write_failed_message(path: Path, needed: int, exc: BaseException) -> str:
+    free = _free_bytes(path.parent)
+    where = f"{path.parent} has {_size(free)} free now" if free is not None else f"on {path.parent}"
+    reason = str((exc.strerror if isinstance(exc, OSError) else None) or exc).split("\n")[0].strip()
+    return (f"{path}: writing the dataset failed ({reason}); it needs about {_size(needed)} of disk "
+            f"space ({where}); nothing was written to {path.name} (the temporary was removed); free some space "
+            f"or point data.path (or data.data_dir) at another disk")
 
 
 def generate_dataset(scene: Any, cfg: DatasetConfig, path: str | os.PathLike) -> Path:
-    """Simulate and write the dataset of `scene` under `cfg` to `path` atomically; returns the path."""
+    """Simulate and write the dataset of `scene` under `cfg` to `path` atomically; returns the path.
+
+    Not enough free space → DatasetError before any temporary is made; an OSError while writing (a full disk),
+    or an h5py error, → DatasetError naming the file and the space needed, with the temporary removed (a file
+    already at `path` stays as it was). Other errors (the scene's) propagate, also without a temporary."""
     path = Path(path)
     attrs = generation_attributes(scene, cfg)
     path.parent.mkdir(parents=True, exist_ok=True)
     _remove_stale_temporaries(path)
-    tmp = path.with_name(f"{path.name}.tmp-{socket.gethostname()}-{os.getpid()}")
     times = cfg.dt * np.arange(cfg.n_times, dtype=np.float64)
     fine, coarse = _grid(scene, cfg.fine_resolution), _grid(scene, cfg.coarse_resolution)
     initial, masks = _draw(scene, cfg, len(coarse))
     bounds = np.cumsum([0, cfg.n_train, cfg.n_val, cfg.n_test])
-    log.info("generating %s dataset at %s (%d trajectories × %d samples)", scene.name, path, bounds[-1], cfg.n_times)
+    needed = _needed_bytes(int(bounds[-1]), cfg.n_times, int(np.prod(initial.shape[1:])), len(fine), len(coarse),
+                           fine.shape[1], int(scene.field_dim))
+    _check_free_space(path, needed)
+    tmp = path.with_name(f"{path.name}.tmp-{socket.gethostname()}-{os.getpid()}")
+    log.info("generating %s dataset at %s (%d trajectories × %d samples, ≤ %s)", scene.name, path, bounds[-1],
+             cfg.n_times, _size(needed))
+    f: Optional[h5py.File] = None
     try:
-        with h5py.File(tmp, "w") as f:
-            f.attrs["format_version"] = FORMAT_VERSION
-            f.attrs["lnf_scene"] = json.dumps(attrs["scene"])
-            f.attrs["lnf_generation"] = json.dumps(attrs["generation"])
-            f.attrs["scene_name"] = str(scene.name)
-            f.create_dataset("times", data=times)
-            f.create_dataset("grids/fine", data=fine)
-            f.create_dataset("grids/coarse", data=coarse)
-            for k, split in enumerate(SPLITS):
-                sl = slice(bounds[k], bounds[k + 1])
-                _write_split(f.create_group(split), scene, initial[sl], masks[sl], times, fine, coarse)
+        h5py.File(tmp, "w").close()
+        _preallocate(tmp, needed)
+        f = h5py.File(tmp, "r+")
+        f.attrs["format_version"] = FORMAT_VERSION
+        f.attrs["lnf_scene"] = json.dumps(attrs["scene"])
+        f.attrs["lnf_generation"] = json.dumps(attrs["generation"])
+        f.attrs["scene_name"] = str(scene.name)
+        _write_array(f, "times", times)
+        _write_array(f, "grids/fine", fine)
+        _write_array(f, "grids/coarse", coarse)
+        for k, split in enumerate(SPLITS):
+            sl = slice(bounds[k], bounds[k + 1])
+            _write_split(f.create_group(split), scene, initial[sl], masks[sl], times, fine, coarse)
+        f.close()  # flushes: may fail too
+        f = None
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as exc:
+        _abandon(f)
         tmp.unlink(missing_ok=True)
+        if _is_write_failure(exc):
+            raise DatasetError(_write_failed_message(path, needed, exc)) from exc
         raise
     return path
 
@@ -392,25 +607,36 @@ def generate_dataset(scene: Any, cfg: DatasetConfig, path: str | os.PathLike) ->
 # reuse
 # ---------------------------------------------------------------------------------------------------
 def _file_problem(path: Path, expected: dict[str, Any]) -> Optional[tuple[str, str]]:
-    """None if the file at `path` is complete and matches `expected`; else (kind, message)."""
+    """None if the file at `path` is complete, intact and matches `expected`; else (kind, detail) with kind
+    "outdated" (another format_version), "mismatch" (other settings: 'key: file X, config Y'; …) or
+    "corrupt" (unreadable, inconsistent, a checksum mismatch or NaN/inf: the message names file and key).
+    Every dataset is read once, one trajectory at a time, to verify its checksum."""
     try:
         with _open(path) as f:
             found = _read_attributes(f, path)
+            version = found.get("format_version")
+            if version is not None and version != expected["format_version"]:
+                return "outdated", f"format_version: file {json.dumps(version)}, config {expected['format_version']}"
             diffs = _differences({k: found.get(k) for k in expected}, expected)
             if diffs:
                 return "mismatch", "; ".join(diffs)
             _check_structure(f, path, SPLITS)
-    except DatasetError as exc:
+            _verify_all(f, path, SPLITS)
+    except _Damaged as exc:
         return "corrupt", str(exc)
     return None
 
 
-def ensure_dataset(scene: Any, cfg: DatasetConfig, path: str | os.PathLike,
-                   on_mismatch: str = "regenerate") -> Path:
-    """Return `path`, generating it if absent, corrupt or generated with other settings.
+def ensure_dataset(scene: Any, cfg: DatasetConfig, path: str | os.PathLike, on_mismatch: str = "regenerate",
+                   overwrite_other_settings: bool = True) -> Path:
+    """Return `path`, generating it if absent, corrupt, of another format version or made with other settings.
 
-    on_mismatch: "regenerate" (log a warning naming the differences, regenerate) or "error" (raise
-    DatasetError naming the differing keys with both values). A mismatching file is never reused.
+    A file is reused only if its settings match and every dataset matches its checksum and is finite.
+    on_mismatch: "regenerate" (log a warning naming the file and the problem — the differing keys, or the
+    damaged dataset — and regenerate) or "error" (raise DatasetError naming them).
+    overwrite_other_settings: False (an explicitly chosen path, which several runs may share) → a file made
+    with other settings raises DatasetError naming the differing keys with both values, under either
+    on_mismatch; corrupt and outdated files are still regenerated under "regenerate".
     """
     if on_mismatch not in ("regenerate", "error"):
         raise DatasetError(f"data.on_mismatch must be 'regenerate' or 'error', got {on_mismatch!r}")
@@ -422,10 +648,17 @@ def ensure_dataset(scene: Any, cfg: DatasetConfig, path: str | os.PathLike,
         log.info("reusing dataset %s", path)
         return path
     kind, detail = problem
+    if kind == "mismatch" and not overwrite_other_settings:
+        raise DatasetError(_kept_message(path, detail))
     if on_mismatch == "error":
-        raise DatasetError(_mismatch_message(path, [detail]) if kind == "mismatch" else detail)
-    log.warning("regenerating dataset %s: %s", path,
-                f"settings differ ({detail})" if kind == "mismatch" else detail)
+        if kind == "mismatch":
+            raise DatasetError(_mismatch_message(path, [detail], ERROR_HINT))
+        if kind == "outdated":
+            raise DatasetError(f"{path}: dataset has another file format ({detail}); {ERROR_HINT}")
+        raise DatasetError(f"{detail}; {ERROR_HINT}")
+    reason = {"mismatch": f"settings differ ({detail})", "outdated": f"it has another file format ({detail})",
+              "corrupt": detail}[kind]
+    log.warning("regenerating dataset %s: %s", path, reason)
     return generate_dataset(scene, cfg, path)
 
 
@@ -486,26 +719,31 @@ class TrajectorySplit:
 
 def load_split(path: str | os.PathLike, split: str, scene: Any = None,
                cfg: Optional[DatasetConfig] = None) -> TrajectorySplit:
-    """Load and validate one split; with `scene`/`cfg`, also check the file was generated from them."""
+    """Load and validate one split (structure, checksums, finiteness of what it reads); with `scene`/`cfg`,
+    also check the file was generated from them."""
     path = Path(path)
     if split not in SPLITS:
         raise DatasetError(f"split must be one of {', '.join(SPLITS)}, got {split!r}")
     if not path.is_file():
         raise DatasetError(f"{path}: dataset file not found; run `python -m lnf.train` (it generates the dataset) "
                            f"or call lnf.dataset.ensure_dataset(scene, cfg, path)")
-    with _open(path) as f:
-        attrs = _read_attributes(f, path)
-        _check_version(path, attrs)
-        if scene is not None or cfg is not None:
-            exp = _expected(scene, cfg)
-            diffs = _differences({k: attrs.get(k) for k in exp}, exp)
-            if diffs:
-                raise DatasetError(_mismatch_message(path, diffs))
-        _check_structure(f, path, (split,))
-        data = {name: _read_finite(f, path, key) for name, key in (
-            ("times", "times"), ("fine_points", "grids/fine"), ("coarse_points", "grids/coarse"),
-            ("states", f"{split}/states"), ("energy", f"{split}/energy"), ("fields", f"{split}/fields"),
-            ("velocities", f"{split}/velocities"), ("coarse_fields", f"{split}/coarse_fields"),
-            ("coarse_velocities", f"{split}/coarse_velocities"))}
-        masks = f[f"{split}/masks"][...]
-    return TrajectorySplit(masks=masks, attrs=attrs, **data)
+    try:
+        with _open(path) as f:
+            attrs = _read_attributes(f, path)
+            _check_version(path, attrs)
+            if scene is not None or cfg is not None:
+                exp = _expected(scene, cfg)
+                diffs = _differences({k: attrs.get(k) for k in exp}, exp)
+                if diffs:
+                    raise DatasetError(_mismatch_message(path, diffs, "load it with the settings it was made "
+                                                                      "with, or regenerate it with these with "
+                                                                      "lnf.dataset.ensure_dataset"))
+            _check_structure(f, path, (split,))
+            data = {name: _read_verified(f, path, key) for name, key in (
+                ("times", "times"), ("fine_points", "grids/fine"), ("coarse_points", "grids/coarse"),
+                ("states", f"{split}/states"), ("energy", f"{split}/energy"), ("fields", f"{split}/fields"),
+                ("velocities", f"{split}/velocities"), ("coarse_fields", f"{split}/coarse_fields"),
+                ("coarse_velocities", f"{split}/coarse_velocities"), ("masks", f"{split}/masks"))}
+    except _Damaged as exc:
+        raise DatasetError(f"{exc}; {LOAD_HINT}") from exc
+    return TrajectorySplit(attrs=attrs, **data)

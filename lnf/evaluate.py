@@ -6,6 +6,7 @@ horizon, quadrature and evaluation grid, writes metrics.json and Figure 3 into t
 from __future__ import annotations
 
 import logging
+import math
 import time
 from pathlib import Path
 from typing import Any, Optional
@@ -15,7 +16,8 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from lnf.dataset import DatasetConfig, ensure_dataset, load_split
+from lnf.config_keys import check_known_keys
+from lnf.dataset import SPLITS, DatasetConfig, ensure_dataset, load_split
 from lnf.evaluation import evaluate_rollouts, long_horizon_energy
 from lnf.model import build, load
 from lnf.quadrature import midpoint_grid
@@ -98,8 +100,67 @@ def ensure_code_range(model: Any, path: Path, scene: Any, dcfg: DatasetConfig) -
              len(fields), model.code_low.tolist(), model.code_high.tolist())
 
 
+GRID_KINDS = ("stored", "uniform", "random")
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def _number(cfg: DictConfig, key: str, expected: str, positive: bool, null: str = "") -> None:
+    """`key` must be a finite number (> 0 if `positive`, else ≥ 0), or null when `null` says what null means."""
+    value = OmegaConf.select(cfg, key)
+    if value is None and null:
+        return
+    if _is_number(value) and math.isfinite(value) and (value > 0 if positive else value >= 0):
+        return
+    raise ValueError(f"{key} must be a finite number {'>' if positive else '≥'} 0 [s] ({expected})"
+                     f"{' or null (' + null + ')' if null else ''}, got {value!r}")
+
+
+def _integer(cfg: DictConfig, key: str, minimum: int, expected: str, null: str = "") -> None:
+    """`key` must be an integer ≥ `minimum` (an integral float such as 4.0 passes), or null when `null` is given."""
+    value = OmegaConf.select(cfg, key)
+    if value is None and null:
+        return
+    if _is_number(value) and math.isfinite(value) and value == int(value) and value >= minimum:
+        return
+    raise ValueError(f"{key} must be an integer ≥ {minimum} ({expected}){' or null (' + null + ')' if null else ''}, "
+                     f"got {value!r}")
+
+
+def check_settings(cfg: DictConfig) -> None:
+    """Refuse keys lnf.evaluate does not use and settings it cannot run, before anything is loaded or rolled out."""
+    check_known_keys(cfg, "evaluate", "lnf.evaluate")
+    if OmegaConf.is_missing(cfg, "ckpt_path") or cfg.get("ckpt_path") in (None, ""):
+        raise ValueError("ckpt_path is required: the checkpoint to evaluate, e.g. "
+                         "ckpt_path=outputs/pendulum/runs/<date>/checkpoints/last.ckpt")
+    if cfg.get("split") not in SPLITS:
+        raise ValueError(f"split must be one of {', '.join(SPLITS)}, got {cfg.get('split')!r}")
+    _number(cfg, "dt", "the sample spacing of the evaluation", True, "the data's")
+    _number(cfg, "horizon", "how long to roll out", True, "the data's horizon")
+    _number(cfg, "train_horizon", "where extrapolation starts", False, "the data's training horizon")
+    _integer(cfg, "max_trajectories", 1, "how many trajectories of the split to evaluate", "all of them")
+    _integer(cfg, "long_steps", 0, "steps of the long-horizon energy check; 0 skips it")
+    _integer(cfg, "long_trajectories", 1, "trajectories of the long-horizon energy check")
+    _integer(cfg, "figures", 0, "how many trajectories get a Figure 3; 0 draws none")
+    _integer(cfg, "max_reduction_points", 1, "evaluation points that ρ̃ uses", "all of them")
+    _integer(cfg, "threads", 1, "torch CPU threads", "torch's default")
+    kind = OmegaConf.select(cfg, "grid.kind", default="stored")
+    if kind not in GRID_KINDS:
+        raise ValueError(f"grid.kind must be 'stored', 'uniform' or 'random', got {kind!r}")
+    _integer(cfg, "grid.resolution", 1, "points per axis of grid.kind=uniform; below 1 the grid has no points")
+    _integer(cfg, "grid.n_points", 1, "points of grid.kind=random; below 1 the grid has no points")
+    _integer(cfg, "grid.seed", 0, "the seed of grid.kind=random")
+
+
 def evaluate(cfg: DictConfig) -> dict[str, float]:
-    """Evaluate `cfg.ckpt_path`; returns the metrics (also written to metrics.json)."""
+    """Evaluate `cfg.ckpt_path`; returns the metrics (also written to metrics.json).
+
+    Unknown keys and bad settings are refused first (:func:`check_settings`); a figure that cannot be drawn is
+    a warning, after metrics.json and run.json are written.
+    """
+    check_settings(cfg)
     if cfg.get("threads"):
         torch.set_num_threads(int(cfg.threads))
     output_dir = Path(cfg.paths.output_dir)
@@ -111,8 +172,9 @@ def evaluate(cfg: DictConfig) -> dict[str, float]:
         raise ValueError(f"checkpoint {cfg.ckpt_path} records no data settings; cannot find its test trajectories")
     path = Path(data.pop("path"))
     on_mismatch = data.pop("on_mismatch", "regenerate")
+    explicit = bool(data.pop("explicit_path", False))  # a shared file of another run's settings is not overwritten
     dcfg = DatasetConfig.from_mapping(data)
-    ensure_dataset(scene, dcfg, path, on_mismatch=on_mismatch)
+    ensure_dataset(scene, dcfg, path, on_mismatch=on_mismatch, overwrite_other_settings=not explicit)
     split = load_split(path, cfg.split, scene=scene, cfg=dcfg)
     ensure_code_range(model, path, scene, dcfg)
 
@@ -143,7 +205,7 @@ def evaluate(cfg: DictConfig) -> dict[str, float]:
                                true_fields=split.fields[:n] if use_stored else None,
                                true_velocities=split.velocities[:n] if use_stored else None,
                                integrator=integrator, quadrature=quadrature, grid_shape=grid_shape,
-                               max_reduction_points=cfg.max_reduction_points)
+                               max_reduction_points=cfg.max_reduction_points, label=f"{cfg.split} rollout")
     metrics = dict(result.metrics)
     if int(cfg.long_steps) > 0:
         metrics.update(long_horizon_energy(model, states[: int(cfg.long_trajectories), 0], points, dt,
@@ -153,8 +215,12 @@ def evaluate(cfg: DictConfig) -> dict[str, float]:
     write_json_atomic(output_dir / "metrics.json", metrics)
     write_json_atomic(output_dir / "run.json", run_metadata(cfg))
     if grid_shape is not None and int(cfg.figures) > 0:
-        save_evaluation_figures(result, scene, grid_shape, train_horizon, output_dir / "figures", cfg.split,
-                                int(cfg.figures))
+        try:  # the results are written: a figure that fails (a plotting backend, a full disk) must not cost them
+            save_evaluation_figures(result, scene, grid_shape, train_horizon, output_dir / "figures", cfg.split,
+                                    int(cfg.figures))
+        except Exception as err:  # noqa: BLE001
+            log.warning("could not draw Figure 3: %s: %s (metrics.json and run.json are written in %s)",
+                        type(err).__name__, err, output_dir)
     print_summary(metrics, title=f"{cfg.split} metrics of {cfg.ckpt_path}")
     return metrics
 

@@ -6,6 +6,7 @@ the true fields, with the projected reference q̃_ref(t) = ρ̃(q(t)) and with t
 """
 from __future__ import annotations
 
+import logging
 import time
 from dataclasses import dataclass, field
 from typing import Optional
@@ -18,6 +19,8 @@ from lnf import metrics as M
 from lnf.integrators import Integrator, get_integrator
 from lnf.reduced_model import ReducedModel
 from lnf.quadrature import Quadrature, QuadratureRule
+
+log = logging.getLogger("lnf.evaluation")
 
 
 @dataclass
@@ -55,6 +58,46 @@ def trajectory_controls(scene, states0: np.ndarray, like: Tensor) -> Optional[Te
     return None if controls is None else torch.as_tensor(controls, dtype=like.dtype, device=like.device)
 
 
+def divergence_steps(diverged_step: "Tensor | np.ndarray", non_finite: Optional[np.ndarray] = None,
+                     record_every: int = 1) -> np.ndarray:
+    """Per trajectory (n,), the integration step at which it diverged, −1 where it did not.
+
+    A trajectory diverged where the integrator says so (`diverged_step` ≥ 0: its state became non-finite or
+    exceeded the bound) or where a recorded quantity such as its energy is non-finite: `non_finite` (n, R)
+    marks the recorded samples (every `record_every` steps); the earlier of the two counts.
+    """
+    steps = np.asarray(diverged_step.cpu() if isinstance(diverged_step, Tensor) else diverged_step,
+                       dtype=np.int64).reshape(-1).copy()
+    if non_finite is not None:
+        bad = np.asarray(non_finite, dtype=bool).reshape(len(steps), -1)
+        first = np.where(bad.any(-1), bad.argmax(-1) * int(record_every), -1)
+        steps = np.where((first >= 0) & ((steps < 0) | (first < steps)), first, steps)
+    return steps
+
+
+def divergence_metrics(steps: np.ndarray, dt: float, t0: float = 0.0, suffix: str = "",
+                       label: str = "rollout") -> dict[str, float]:
+    """`diverged_count`, `diverged_fraction`, `first_divergence_step` and `first_divergence_time` [s] (+ `suffix`)
+    from per-trajectory divergence steps (n,) (−1: stayed finite; see :func:`divergence_steps`).
+
+    The first step and time are the earliest over the trajectories; both are −1.0 when none diverged (JSON has
+    no NaN). A divergence is also logged as a warning (logger ``lnf.evaluation``) naming the `label`ed rollout.
+    """
+    steps = np.asarray(steps).reshape(-1)
+    hit = steps >= 0
+    count = int(hit.sum())
+    first = int(steps[hit].min()) if count else -1
+    when = float(t0 + first * dt) if count else -1.0
+    if count:
+        which = np.flatnonzero(hit).tolist()
+        log.warning("%s: %d of %d trajectories diverged (non-finite or exploding state or energy), the first at "
+                    "step %d (t = %.6g s, dt = %g s); trajectories %s%s. Try a smaller dt, integrator.substeps or "
+                    "another integrator.", label, count, len(steps), first, when, dt, which[:10],
+                    " …" if len(which) > 10 else "")
+    return {f"diverged_count{suffix}": float(count), f"diverged_fraction{suffix}": count / max(len(steps), 1),
+            f"first_divergence_step{suffix}": float(first), f"first_divergence_time{suffix}": when}
+
+
 def _chunked(fn, x: Tensor, chunk: int) -> Tensor:
     return torch.cat([fn(x[i:i + chunk]) for i in range(0, x.shape[0], chunk)], dim=0)
 
@@ -73,6 +116,7 @@ def evaluate_rollouts(
     snapshot_chunk: int = 32,
     grid_shape: Optional[tuple[int, ...]] = None,
     max_reduction_points: Optional[int] = 1024,
+    label: str = "rollout",
 ) -> RolloutEvaluation:
     """Roll out every trajectory of full-order `states` (n, T, S) sampled at `times` (T,) [s].
 
@@ -80,6 +124,10 @@ def evaluate_rollouts(
     come from `true_fields`/`true_velocities` (n, T, N, A) when given, else from the scene. Decoding and
     errors use all N points; ρ̃ (initial conditions and the projected reference q̃_ref) uses an evenly
     strided subset of at most `max_reduction_points` of them (see :func:`reduction_subset`).
+
+    Divergence: `diverged_fraction`, `diverged_count`, `first_divergence_step` and `first_divergence_time` [s]
+    (the earliest over the trajectories, −1.0 when none diverged; see :func:`divergence_metrics`); a trajectory
+    diverged where its state or its energy became non-finite. It is also logged as a warning naming `label`.
     """
     if points.ndim != 2 or points.shape[0] == 0:
         raise ValueError(f"evaluation grid has no points: expected shape (N ≥ 1, dim_B), got {points.shape}")
@@ -146,7 +194,8 @@ def evaluate_rollouts(
     metrics["vpt/median"] = float(np.median(vpt))
     metrics["vpt/min"] = float(np.min(vpt))
     metrics.pop("vpt/max", None)
-    metrics["diverged_fraction"] = float(traj.diverged.float().mean())
+    metrics.update(divergence_metrics(divergence_steps(traj.diverged_step, ~np.isfinite(kin + pot)), dt,
+                                      float(times[0]), label=label))
     metrics["rollout_seconds_per_trajectory"] = rollout_seconds / n
     metrics["rollout_seconds_per_step"] = rollout_seconds / max(T - 1, 1)
     metrics["decode_seconds_per_trajectory"] = decode_seconds / n  # all T frames on the N evaluation points
@@ -176,7 +225,13 @@ def long_horizon_energy(
     grid_shape: Optional[tuple[int, ...]] = None,
     max_reduction_points: Optional[int] = 1024,
 ) -> dict[str, float]:
-    """energy_drift = max_t |Ẽ(t) − Ẽ(0)| / E_scale over a `steps`-step rollout from full-order states (n, S)."""
+    """energy_drift = max_t |Ẽ(t) − Ẽ(0)| / E_scale over a `steps`-step rollout from full-order states (n, S).
+
+    Returns `energy_drift_long/{median,max,steps,seconds}` and where the rollout diverged:
+    `diverged_count_long`, `diverged_fraction_long`, `first_divergence_step_long` and
+    `first_divergence_time_long` [s] (−1.0 when none diverged; a non-finite state or energy counts), also logged
+    as a warning (see :func:`divergence_metrics`).
+    """
     scene = model.scene
     p = model.reference_tensor()
     if model.state_is_field:
@@ -193,9 +248,11 @@ def long_horizon_energy(
     seconds = time.perf_counter() - start
     kin, pot = model.energy(torch.nan_to_num(traj.q), torch.nan_to_num(traj.v), quadrature)
     energy = (kin + pot).double().cpu().numpy()
-    energy[traj.diverged.cpu().numpy()] = np.nan
+    diverged = divergence_steps(traj.diverged_step, ~np.isfinite(energy), record_every)
+    energy[diverged >= 0] = np.nan
     drift = np.max(np.abs(energy - energy[:, :1]), axis=-1) / scene.energy_scale
     out = {f"energy_drift_long/{k}": v for k, v in M.summarize(drift).items()}
     out["energy_drift_long/steps"] = float(steps)
     out["energy_drift_long/seconds"] = seconds
+    out.update(divergence_metrics(diverged, dt, suffix="_long", label="long-horizon energy check"))
     return out

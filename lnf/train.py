@@ -5,19 +5,24 @@
 """
 from __future__ import annotations
 
+import inspect
+import json
 import logging
-import os
 import time
+from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, Optional
 
 import hydra
 import lightning.pytorch as pl
 import torch
+from lightning.pytorch.callbacks import Timer
 from omegaconf import DictConfig, OmegaConf
 
 from lnf.baselines.latent_mlp import latent_trajectories
+from lnf.config_keys import check_known_keys
 from lnf.training.callbacks import RolloutEvaluationCallback, write_json_atomic
+from lnf.training.checkpoints import AtomicCheckpointIO, resume_checkpoint
 from lnf.training.datamodule import SnapshotDataModule
 from lnf.training.module import LNFModule
 from lnf.utils import check_config, print_summary, resolved_config, run_metadata
@@ -40,49 +45,85 @@ def _container(node: Any) -> Any:
     return OmegaConf.to_container(node, resolve=True) if isinstance(node, DictConfig) else node
 
 
-def build_loggers(cfg: DictConfig, output_dir: Path) -> list[Any]:
+def build_loggers(cfg: DictConfig, output_dir: Path, resume: bool = False) -> list[Any]:
+    """The configured loggers; a logger that takes ``resume`` (lnf's CSVLogger) appends to its log when resuming."""
     loggers = []
     for name, spec in (cfg.get("logger") or {}).items():
         if spec is None:
             continue
-        kwargs = {}
         if "save_dir" in spec:
             Path(spec.save_dir).mkdir(parents=True, exist_ok=True)
+        cls = hydra.utils.get_class(spec._target_)
+        kwargs = {"resume": resume} if "resume" in inspect.signature(cls).parameters else {}
         loggers.append(hydra.utils.instantiate(spec, **kwargs))
     return loggers
 
 
-def save_checkpoint_atomic(trainer: pl.Trainer, path: Path) -> None:
-    """`trainer.save_checkpoint` to a temporary name, then renamed: a run killed while writing never leaves a
-    half-written `path` (every rank calls it; rank 0 writes)."""
-    tmp = path.with_name(path.name + ".tmp")
-    trainer.save_checkpoint(tmp)
-    if trainer.is_global_zero:
-        os.replace(tmp, path)
+def check_resumed_scene(ckpt: dict[str, Any], path: Path, scene_spec: dict[str, Any], allow: bool) -> None:
+    """A checkpoint of another scene (or other scene parameters) is refused unless ``resume_other_scene=true``:
+    equal parameter shapes would let it load silently."""
+    saved = (ckpt.get("hyper_parameters") or {}).get("scene")
+    if saved is None or saved == scene_spec:
+        return
+    keys = sorted(k for k in set(saved) | set(scene_spec) if saved.get(k) != scene_spec.get(k))
+    diffs = "; ".join(f"scene.{k}: checkpoint {saved.get(k)!r}, config {scene_spec.get(k)!r}" for k in keys)
+    if not allow:
+        raise ValueError(f"{path} was trained on another scene ({diffs}); resume it with its own scene, start "
+                         f"afresh in a new output dir, or set resume_other_scene=true to fine-tune it on this one")
+    log.warning("resuming %s, trained on another scene (%s), as resume_other_scene=true asks", path, diffs)
 
 
-def resolve_checkpoint(ckpt_path: Optional[str], output_dir: Path) -> Optional[str]:
-    """The checkpoint to resume from: `ckpt_path` = null (when a killed run's output dir is reused, resume
-    from the newest of ``checkpoints/last.ckpt`` and Lightning's SLURM ``hpc_ckpt_*.ckpt``; else start
-    afresh), "last" (``checkpoints/last.ckpt``, which must exist) or a path."""
-    last = output_dir / "checkpoints" / "last.ckpt"
-    if ckpt_path is None:
-        # Lightning's SLURM requeue (SIGUSR1) saves hpc_ckpt_<n>.ckpt in the output dir: take the newest
-        found = [p for p in [last, *output_dir.glob("hpc_ckpt_*.ckpt")] if p.is_file()]
-        if found:
-            newest = max(found, key=lambda p: p.stat().st_mtime)
-            log.info("resuming from %s (the output dir holds a checkpoint; use a new dir to start afresh)", newest)
-            return str(newest)
-        return None
-    path = last if str(ckpt_path) == "last" else Path(str(ckpt_path))
-    if not path.is_file():
-        raise FileNotFoundError(f"ckpt_path={ckpt_path}: no checkpoint at {path}; expected a Lightning checkpoint "
-                                f"file, or ckpt_path=last with hydra.run.dir set to the run to resume")
-    return str(path)
+def check_settings(cfg: DictConfig, module: LNFModule) -> None:
+    """Settings that would otherwise fail only after training: build what the test phase needs now."""
+    try:
+        module.model.quadrature_rule.build(module.model.scene.bounds)
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"quadrature={OmegaConf.to_container(cfg.quadrature)}: {err}") from err
+    max_epochs = cfg.trainer.get("max_epochs")
+    if isinstance(max_epochs, bool) or not isinstance(max_epochs, int) or max_epochs < 1:
+        raise ValueError(f"trainer.max_epochs must be an integer ≥ 1 (the training budget), got {max_epochs!r}")
+
+
+def training_budget(trainer: pl.Trainer, trained: bool) -> dict[str, float]:
+    """Epochs and optimiser steps run, the epoch budget, and whether ``trainer.max_time`` cut it short."""
+    max_epochs = int(trainer.max_epochs or 0)
+    if not trained:
+        return {"epochs_run": 0.0, "max_epochs": float(max_epochs), "global_steps": 0.0, "stopped_by_time_limit": 0.0}
+    epochs = int(trainer.fit_loop.epoch_progress.current.completed)
+    timer = next((c for c in trainer.callbacks if isinstance(c, Timer)), None)
+    stopped = timer is not None and epochs < max_epochs and (timer.time_remaining("train") or 0.0) <= 0
+    return {"epochs_run": float(epochs), "max_epochs": float(max_epochs), "global_steps": float(trainer.global_step),
+            "stopped_by_time_limit": float(stopped)}
+
+
+def budget_sentence(metrics: dict[str, float], max_time: Any, trained: bool) -> str:
+    """The end-of-run line that says in words whether the whole epoch budget ran."""
+    if not trained:
+        return "training: none (the model is fitted in closed form)"
+    done, total, steps = int(metrics["epochs_run"]), int(metrics["max_epochs"]), int(metrics["global_steps"])
+    if metrics.get("stopped_by_time_limit"):
+        return (f"training: STOPPED by the time limit trainer.max_time={max_time} after {done} of {total} epochs "
+                f"({steps} steps): these results are not those of the full budget; raise or remove "
+                f"trainer.max_time and resume with the same command")
+    return f"training: all {total} epochs ran ({steps} steps); no time limit stopped it"
+
+
+def run_record(cfg: DictConfig, path: Path) -> dict[str, Any]:
+    """run.json's contents: this run's metadata, with the metadata of the earlier runs in the same output dir
+    (a resumed run) kept under ``previous_runs``, oldest first."""
+    meta = {**run_metadata(cfg), "started_at": datetime.now(timezone.utc).isoformat(timespec="seconds")}
+    try:
+        old = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return meta
+    if isinstance(old, dict):
+        meta["previous_runs"] = [*old.pop("previous_runs", []), old]
+    return meta
 
 
 def train(cfg: DictConfig) -> dict[str, float]:
     """Generate data if needed, train, test; returns the test metrics (also written to metrics.json)."""
+    check_known_keys(cfg, "train", "lnf.train", allowed_extra=("experiment",))
     check_config(cfg)
     output_dir = Path(cfg.paths.output_dir)
     output_dir.mkdir(parents=True, exist_ok=True)
@@ -93,33 +134,38 @@ def train(cfg: DictConfig) -> dict[str, float]:
     scene_spec = _container(cfg.scene)
     datamodule: SnapshotDataModule = hydra.utils.instantiate(cfg.data, scene=scene_spec, _convert_="all")
     log.info("dataset: %s", datamodule.path)
-    datamodule.prepare_data()
     model_spec = _container(cfg.model)
     dynamics_spec = _container(cfg.get("dynamics"))
     if dynamics_spec and not str(dynamics_spec.get("_target_", "")).endswith("ReducedDynamics"):
         model_spec["dynamics"] = dynamics_spec
     module = LNFModule(scene=scene_spec, model=model_spec, quadrature=_container(cfg.quadrature),
                        optimizer=_container(cfg.optimizer), data=datamodule.describe())
-    datamodule.potential_targets = getattr(module.model, "energy_weight", 0.0) > 0  # items carry V for ℓ^E
-    datamodule.gradient_targets = getattr(module.model, "gradient_weight", 0.0) > 0  # items carry ∇_X q for ℓ^G
+    check_settings(cfg, module)
     evaluation = RolloutEvaluationCallback(integrator=_container(cfg.integrator), output_dir=str(output_dir),
                                            **_container(cfg.evaluation))
+    ckpt_file, ckpt = resume_checkpoint(cfg.get("ckpt_path"), output_dir)
+    if ckpt is not None:
+        check_resumed_scene(ckpt, ckpt_file, module.hparams["scene"], bool(cfg.get("resume_other_scene", False)))
+        del ckpt
+    datamodule.prepare_data()  # generates, or verifies every split of a stored file, before the first step
+    datamodule.potential_targets = getattr(module.model, "energy_weight", 0.0) > 0  # items carry V for ℓ^E
+    datamodule.gradient_targets = getattr(module.model, "gradient_weight", 0.0) > 0  # items carry ∇_X q for ℓ^G
     callbacks = [hydra.utils.instantiate(c) for c in (cfg.get("callbacks") or {}).values() if c is not None]
-    trainer: pl.Trainer = hydra.utils.instantiate(cfg.trainer, callbacks=[*callbacks, evaluation],
-                                                  logger=build_loggers(cfg, output_dir) or False)
+    trainer: pl.Trainer = hydra.utils.instantiate(
+        cfg.trainer, callbacks=[*callbacks, evaluation], plugins=[AtomicCheckpointIO()],
+        logger=build_loggers(cfg, output_dir, resume=ckpt_file is not None) or False)
     if trainer.is_global_zero:  # provenance first, so that a run killed later still says what it was
-        write_json_atomic(output_dir / "run.json", run_metadata(cfg))
+        write_json_atomic(output_dir / "run.json", run_record(cfg, output_dir / "run.json"))
     for logger in trainer.loggers:
         logger.log_hyperparams(resolved_config(cfg))
-    ckpt_path = resolve_checkpoint(cfg.get("ckpt_path"), output_dir)
     model = module.model
     fit_info: dict[str, float] = {}
     fit_metrics: dict[str, float] = {}
     if model.trainable:
-        trainer.fit(module, datamodule=datamodule, ckpt_path=ckpt_path)
-        # the last epoch's training and validation values (losses, validation rollouts)
-        fit_metrics = {k: float(v) for k, v in trainer.callback_metrics.items()
-                       if k.startswith(("train/", "val/")) and not k.endswith("_step")}
+        trainer.fit(module, datamodule=datamodule, ckpt_path=str(ckpt_file) if ckpt_file else None)
+        # the last epoch's training and validation values (losses, validation rollouts); a run resumed after
+        # its last epoch trains no more and reports those its checkpoint recorded
+        fit_metrics = {**module.restored_fit_metrics, **module.fit_metrics()}
     else:
         log.info("%s is fitted in closed form: no gradient training", type(model).__name__)
         points, values, _ = datamodule.observations("train")
@@ -127,22 +173,29 @@ def train(cfg: DictConfig) -> dict[str, float]:
     if getattr(model, "latent_dynamics", None) is not None:
         fit_info.update(fit_latent_dynamics(model, datamodule))
     train_seconds = time.perf_counter() - start
+    budget = training_budget(trainer, model.trainable)
     trainer.test(module, datamodule=datamodule, verbose=False)
     # last.ckpt, which lnf.load and lnf.evaluate read, holds the weights the test evaluated: what was fitted after
     # (or instead of) training, and the steps a max_time stop took after the last validation. (After the test:
-    # a model fitted in closed form is attached to the trainer only there.)
-    save_checkpoint_atomic(trainer, output_dir / "checkpoints" / "last.ckpt")
+    # a model fitted in closed form is attached to the trainer only there.) Written through AtomicCheckpointIO:
+    # a temporary name in the same folder, then renamed.
+    trainer.save_checkpoint(output_dir / "checkpoints" / "last.ckpt")
 
     metrics = {k: float(v) for k, v in evaluation.test_metrics.items()}
     metrics["train_seconds"] = train_seconds
     metrics["total_seconds"] = time.perf_counter() - start
     metrics.update(fit_info)
+    metrics.update(budget)
     if hasattr(model, "step_size"):
         metrics["step_size"] = float(model.step_size.detach())
     metrics.update(fit_metrics)
     if trainer.is_global_zero:
         write_json_atomic(output_dir / "metrics.json", metrics)
-        print_summary(metrics, title=f"test metrics ({output_dir})")
+    evaluation.draw_figures(trainer)  # after the results are written: a figure that fails is a warning
+    if trainer.is_global_zero:
+        sentence = budget_sentence(metrics, cfg.trainer.get("max_time"), model.trainable)
+        (log.warning if metrics.get("stopped_by_time_limit") else log.info)("%s", sentence)
+        print_summary(metrics, title=f"test metrics ({output_dir})", caption=sentence)
     return metrics
 
 

@@ -69,14 +69,14 @@ def _git(args: list[str], cwd: Path) -> Optional[str]:
     return proc.stdout.strip() if proc.returncode == 0 else None
 
 
-def print_summary(metrics: dict[str, float], title: str = "test metrics") -> None:
-    """A short table of the headline metrics (rich if available)."""
+def print_summary(metrics: dict[str, float], title: str = "test metrics", caption: Optional[str] = None) -> None:
+    """A short table of the headline metrics (rich if available), with `caption` in words below it."""
     rows = [(k, metrics[k]) for k in SUMMARY_KEYS if k in metrics]
     try:
         from rich.console import Console
         from rich.table import Table
 
-        table = Table(title=title)
+        table = Table(title=title, caption=caption, caption_justify="left")
         table.add_column("metric")
         table.add_column("value", justify="right")
         for k, v in rows:
@@ -86,3 +86,5 @@ def print_summary(metrics: dict[str, float], title: str = "test metrics") -> Non
         print(title)
         for k, v in rows:
             print(f"  {k:40s} {v:.4g}")
+        if caption:
+            print(caption)

@@ -210,9 +210,9 @@ def test_corrupt_file(tmp_path, fresh_file, scene, damage, caplog):
 def test_wrong_format_version(fresh_file, scene):
     with h5py.File(fresh_file, "a") as f:
         f.attrs["format_version"] = 0
-    with pytest.raises(DatasetError, match=r"pendulum\.h5.*format_version 0, this lnf reads 1"):
+    with pytest.raises(DatasetError, match=rf"pendulum\.h5.*format_version 0, this lnf reads {FORMAT_VERSION}"):
         load_split(fresh_file, "test")
-    with pytest.raises(DatasetError, match=r"format_version: file 0, config 1"):
+    with pytest.raises(DatasetError, match=rf"format_version: file 0, config {FORMAT_VERSION}"):
         ensure_dataset(scene, CFG, fresh_file, on_mismatch="error")
     with h5py.File(fresh_file, "a") as f:
         del f.attrs["format_version"]

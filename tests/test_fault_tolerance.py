@@ -72,3 +72,18 @@ def test_ddp_on_two_cpu_processes_matches_one_process_and_writes_once(reference,
     assert sorted(p.name for p in (run_dir / "figures").iterdir()) == ["test_trajectory0.png"]
     assert len(list(run_dir.rglob("metrics.json"))) == 1 and len(list(run_dir.rglob("run.json"))) == 1
     assert (run_dir / "checkpoints" / "last.ckpt").exists()
+
+
+def test_run_killed_in_the_test_phase_resumes_with_the_same_metrics(reference, tmp_path):
+    """Killed after training ended (in the test phase), the same command trains no more and still writes every
+    train/* and val/* key of an uninterrupted run, with the same values."""
+    run_dir = tmp_path / "run"
+    kill = ["+callbacks.kill._target_=lnf.training.faults.KillAt", "+callbacks.kill.stage=test"]
+    proc = run_cli([*BASE, "logger=csv", f"hydra.run.dir={run_dir}", *kill], tmp_path, check=False)
+    assert proc.returncode == -signal.SIGKILL, proc.stderr[-2000:]
+    assert not (run_dir / "metrics.json").exists()
+    run_cli([*BASE, "logger=csv", f"hydra.run.dir={run_dir}"], tmp_path)
+    resumed, first = result_metrics(_metrics(run_dir)), result_metrics(_metrics(reference))
+    assert resumed.keys() == first.keys()
+    assert {k for k in first if k.startswith(("train/", "val/"))}, "the reference has no fit metrics"
+    assert resumed == first

@@ -50,6 +50,21 @@ def save_evaluation_figures(result: RolloutEvaluation, scene: Any, grid_shape: t
     return paths
 
 
+def _count(key: str, value: Any, minimum: int = 0) -> int:
+    """An integer setting ≥ `minimum`, or a ValueError naming ``evaluation.<key>``."""
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or int(value) < minimum:
+        raise ValueError(f"evaluation.{key} must be an integer ≥ {minimum}, got {value!r}")
+    return int(value)
+
+
+def _positive(key: str, value: Any) -> float:
+    """A finite number > 0, or a ValueError naming ``evaluation.<key>``."""
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)) \
+            or not np.isfinite(value) or value <= 0:
+        raise ValueError(f"evaluation.{key} must be a finite number > 0, got {value!r}")
+    return float(value)
+
+
 class RolloutEvaluationCallback(pl.Callback):
     """Rolls out the reduced dynamics on held-out trajectories and logs DESIGN.md §6 metrics.
 
@@ -75,14 +90,23 @@ class RolloutEvaluationCallback(pl.Callback):
                  long_steps: int = 10000, long_trajectories: int = 4, long_dt: float = 0.05,
                  figures: int = 2, max_reduction_points: Optional[int] = 1024) -> None:
         super().__init__()
-        self.integrator = get_integrator(integrator)
+        try:
+            self.integrator = get_integrator(integrator)
+        except (TypeError, ValueError, KeyError) as err:
+            raise ValueError(f"integrator={integrator!r}: {err}") from err
         self.output_dir = Path(output_dir)
-        self.every_n_epochs, self.val_trajectories, self.val_resolution = every_n_epochs, val_trajectories, val_resolution
-        self.long_steps, self.long_trajectories, self.long_dt = long_steps, long_trajectories, long_dt
-        self.figures = figures
-        self.max_reduction_points = max_reduction_points
+        self.every_n_epochs = _count("every_n_epochs", every_n_epochs)
+        self.val_trajectories = _count("val_trajectories", val_trajectories, minimum=1)
+        self.val_resolution = _count("val_resolution", val_resolution, minimum=1)
+        self.long_steps = _count("long_steps", long_steps)
+        self.long_trajectories = _count("long_trajectories", long_trajectories, minimum=1)
+        self.long_dt = _positive("long_dt", long_dt)
+        self.figures = _count("figures", figures)
+        self.max_reduction_points = None if max_reduction_points is None else \
+            _count("max_reduction_points", max_reduction_points, minimum=1)
         self.test_metrics: dict[str, float] = {}
         self._val_count = 0
+        self._figure_inputs: Optional[tuple[RolloutEvaluation, Any, tuple[int, ...], float]] = None
 
     def state_dict(self) -> dict[str, Any]:  # saved in checkpoints: a resumed run rolls out at the same epochs
         return {"val_count": self._val_count}
@@ -108,7 +132,8 @@ class RolloutEvaluationCallback(pl.Callback):
         points = midpoint_grid(self.val_resolution, pl_module.model.scene.bounds).numpy()
         with torch.inference_mode(False), torch.no_grad():
             result = evaluate_rollouts(pl_module.model, split.states[:n], split.times, points,
-                                       self._train_horizon(split), integrator=self.integrator)
+                                       self._train_horizon(split), integrator=self.integrator,
+                                       label=f"validation rollout (epoch {trainer.current_epoch})")
         keys = ["field_rel_l2/all/median", "field_rel_l2/extrapolation/median", "projection_rel_l2/all/median",
                 "energy_rel_err/max", "latent_rmse/median", "vpt/median"]
         for key in keys:
@@ -125,7 +150,7 @@ class RolloutEvaluationCallback(pl.Callback):
             result = evaluate_rollouts(model, split.states, split.times, split.fine_points, horizon,
                                        true_fields=split.fields, true_velocities=split.velocities,
                                        integrator=self.integrator, grid_shape=grid_shape,
-                                       max_reduction_points=self.max_reduction_points)
+                                       max_reduction_points=self.max_reduction_points, label="test rollout")
             metrics = dict(result.metrics)
             if self.long_steps > 0:
                 n = min(self.long_trajectories, len(split))
@@ -136,10 +161,26 @@ class RolloutEvaluationCallback(pl.Callback):
         self.test_metrics = metrics
         for key, value in metrics.items():  # equal on every rank (each evaluates the whole split)
             pl_module.log(f"test/{key}", float(value), sync_dist=True)
-        if trainer.is_global_zero:  # figures and images once
-            paths = save_evaluation_figures(result, model.scene, grid_shape, horizon, self.output_dir / "figures",
+        # Figure 3 is drawn by draw_figures() once metrics.json and last.ckpt are written: a figure that
+        # cannot be drawn must not cost the results
+        self._figure_inputs = (result, model.scene, grid_shape, horizon)
+
+    def draw_figures(self, trainer: pl.Trainer) -> list[Path]:
+        """Figure 3 of the last test evaluation (PNG and wandb), on rank 0; a figure that cannot be drawn is a
+        warning naming the error, never a failed run."""
+        if self._figure_inputs is None or not trainer.is_global_zero or self.figures == 0:
+            return []
+        result, scene, grid_shape, horizon = self._figure_inputs
+        self._figure_inputs = None
+        try:
+            paths = save_evaluation_figures(result, scene, grid_shape, horizon, self.output_dir / "figures",
                                             "test", self.figures)
             self._log_images(trainer, paths)
+        except Exception as err:  # noqa: BLE001 - any drawing failure is reported, the results are kept
+            log.warning("could not draw Figure 3 (%s: %s); metrics.json and the checkpoints are written",
+                        type(err).__name__, err)
+            return []
+        return paths
 
     @staticmethod
     def _log_images(trainer: pl.Trainer, paths: list[Path]) -> None:

@@ -90,7 +90,8 @@ class SnapshotDataset(Dataset):
         data = np.asarray(self._source(key)[i, times])[..., self.index[i], :]
         if not np.isfinite(data).all():
             raise DatasetError(f"{self.path}: dataset /{self.split}/{key} has non-finite values in trajectory {i} "
-                               f"(times {times}); the file is damaged: delete it to regenerate it")
+                               f"(times {times}): the file changed after it was verified at the start of the run; "
+                               f"rerun the command (it regenerates a damaged file)")
         return data
 
     def _observed_rms(self, key: str) -> float:
@@ -162,11 +163,16 @@ class SnapshotDataModule(pl.LightningDataModule):
 
     def __init__(self, scene: "Scene | dict", data_dir: str = "data", path: Optional[str] = None,
                  on_mismatch: str = "regenerate", batch_size: int = 32, num_workers: int = 0,
-                 noise: float = 0.0, in_memory: bool = False, shuffle_seed: int = 0, **generation: Any) -> None:
+                 noise: float = 0.0, in_memory: bool = False, shuffle_seed: int = 0,
+                 explicit_path: Optional[bool] = None, **generation: Any) -> None:
         super().__init__()
         self.scene = build(scene) if isinstance(scene, dict) else scene
         self.config = DatasetConfig.from_mapping(generation)
+        # an explicit path may be shared by runs with other settings: its file is never overwritten with them
+        # (None: whether `path` is given; a checkpoint's describe() records it)
+        self.explicit_path = bool(path) if explicit_path is None else bool(explicit_path)
         self.path = Path(path) if path else default_path(data_dir, self.scene, self.config)
+        self._verified: Optional[tuple[int, int, int]] = None  # (inode, size, mtime) of the file last ensured
         self.on_mismatch = on_mismatch
         if int(batch_size) != batch_size or batch_size < 1:
             raise ValueError(f"data.batch_size must be an integer ≥ 1, got {batch_size!r}")
@@ -182,7 +188,18 @@ class SnapshotDataModule(pl.LightningDataModule):
         self.gradient_targets = False
 
     def prepare_data(self) -> None:
-        ensure_dataset(self.scene, self.config, self.path, on_mismatch=self.on_mismatch)
+        """Generate or verify (checksums: one read of the file) the dataset file; again (``setup``) only if the
+        file changed since. At an explicit `path`, a file made with other settings raises DatasetError instead
+        of being regenerated (two runs sharing the path would overwrite each other)."""
+        def file_key() -> Optional[tuple[int, int, int]]:  # changes when the file is replaced or written
+            st = self.path.stat() if self.path.is_file() else None
+            return None if st is None else (st.st_ino, st.st_size, st.st_mtime_ns)
+
+        if self._verified is not None and self._verified == file_key():
+            return
+        ensure_dataset(self.scene, self.config, self.path, on_mismatch=self.on_mismatch,
+                       overwrite_other_settings=not self.explicit_path)
+        self._verified = file_key()
 
     def split(self, name: str) -> TrajectorySplit:
         """The whole validated split ('train', 'val', 'test') in memory, loaded once (for evaluation)."""
@@ -231,7 +248,8 @@ class SnapshotDataModule(pl.LightningDataModule):
 
     def describe(self) -> dict[str, Any]:
         """Data settings to store in checkpoints (enough to regenerate the same file)."""
-        return {"path": str(self.path), "on_mismatch": self.on_mismatch, **self.config.__dict__}
+        return {"path": str(self.path), "on_mismatch": self.on_mismatch, "explicit_path": self.explicit_path,
+                **self.config.__dict__}
 
     def describe_observations(self) -> dict[str, Any]:
         """How the training observations were corrupted (kept beside :meth:`describe` in checkpoints)."""

@@ -34,6 +34,21 @@ class LNFModule(pl.LightningModule):
         self.optimizer_cfg = {"lr": 3e-4, "step_size_lr": 1e-2, "weight_decay": 0.0, "warmup_steps": 0,
                               "schedule": "cosine", "min_lr_ratio": 0.0, "energy_warmup_epochs": 0,
                               **(optimizer or {})}
+        self.restored_fit_metrics: dict[str, float] = {}
+
+    def fit_metrics(self) -> dict[str, float]:
+        """The latest epoch-level training and validation values (``train/*``, ``val/*``, no per-step ones)."""
+        if self._trainer is None:
+            return {}
+        return {k: float(v) for k, v in self.trainer.callback_metrics.items()
+                if k.startswith(("train/", "val/")) and not k.endswith("_step")}
+
+    def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        # a run resumed after its last epoch (killed in the test phase) trains no more: it reports these
+        checkpoint["lnf_fit_metrics"] = {**self.restored_fit_metrics, **self.fit_metrics()}
+
+    def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        self.restored_fit_metrics = dict(checkpoint.get("lnf_fit_metrics") or {})
 
     def _step(self, batch: tuple[Tensor, ...], stage: str, batch_idx: int = 0) -> Tensor:
         # optional extras: the snapshots' potential energy (energy loss; NaN if only gradients follow) and ∇_X q

@@ -1,0 +1,131 @@
+"""Checkpoints that are never half-written, and the choice of the checkpoint a run resumes from.
+
+Lightning's own writer stages a checkpoint in a temporary file of the system's temp folder and then
+*copies* it over the real name: with a full disk that leaves a truncated ``last.ckpt`` under its real
+name. :class:`AtomicCheckpointIO` writes to a temporary name in the checkpoint's own folder and renames
+it, so a file under a checkpoint's name is always complete; :func:`resume_checkpoint` skips any
+checkpoint that does not load and resumes from the newest one that does.
+"""
+from __future__ import annotations
+
+import errno
+import logging
+import os
+from pathlib import Path
+from typing import Any, Optional
+
+import torch
+from lightning.fabric.plugins.io.torch_io import TorchCheckpointIO
+
+from lnf.tempfiles import writer_is_gone
+
+log = logging.getLogger("lnf.train")
+
+
+class CheckpointWriteError(OSError):
+    """A checkpoint could not be written; the message names the file and the cause."""
+
+
+def save_atomic(payload: Any, path: str | os.PathLike) -> Path:
+    """``torch.save(payload)`` to ``{path}.tmp-{pid}`` in the same folder, flushed to disk, then renamed over
+    `path`. On any failure the temporary is removed, `path` keeps what it held, and the error names the file."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f"{path.name}.tmp-{os.getpid()}")
+    try:
+        with open(tmp, "wb") as fh:
+            torch.save(payload, fh)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except OSError as err:
+        tmp.unlink(missing_ok=True)
+        full = err.errno in (errno.ENOSPC, errno.EDQUOT)
+        raise CheckpointWriteError(err.errno, f"could not write the checkpoint {path}: "
+                                   f"{'the disk is full' if full else err.strerror or err}; "
+                                   f"the previous file of that name (if any) is unchanged") from err
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return path
+
+
+class AtomicCheckpointIO(TorchCheckpointIO):
+    """Lightning checkpoint I/O that writes through :func:`save_atomic` (plugged into the Trainer by lnf.train)."""
+
+    def save_checkpoint(self, checkpoint: dict[str, Any], path: Any, storage_options: Optional[Any] = None) -> None:
+        if storage_options is not None:
+            raise TypeError(f"AtomicCheckpointIO takes no storage_options, got {storage_options!r}")
+        save_atomic(checkpoint, path)
+
+
+def read_checkpoint(path: Path) -> tuple[Optional[dict[str, Any]], str]:
+    """(the checkpoint dict, "") if `path` loads as a Lightning checkpoint, else (None, why not)."""
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as err:  # noqa: BLE001 - any unpickling failure: truncated, zeroed, not a checkpoint
+        return None, f"does not load ({type(err).__name__}: {err})"
+    if not isinstance(ckpt, dict) or "state_dict" not in ckpt or "epoch" not in ckpt:
+        return None, "is not a Lightning checkpoint (no state_dict/epoch)"
+    return ckpt, ""
+
+
+def remove_stale_temporaries(output_dir: Path) -> None:
+    """Delete ``*.ckpt.tmp-{pid}`` files of `output_dir` whose writer is gone (a SIGKILL runs no cleanup)."""
+    for tmp in [*(output_dir / "checkpoints").glob("*.ckpt.tmp-*"), *output_dir.glob("*.ckpt.tmp-*")]:
+        pid = tmp.name.rpartition(".tmp-")[2]
+        if writer_is_gone(pid):
+            log.warning("removing %s, left by an interrupted checkpoint write (process %s is gone)", tmp, pid)
+            tmp.unlink(missing_ok=True)
+
+
+def candidates(output_dir: Path) -> list[Path]:
+    """Every checkpoint of a run folder, newest first: ``checkpoints/*.ckpt`` and Lightning's SLURM
+    ``hpc_ckpt_*.ckpt`` (saved on requeue in the output folder)."""
+    found = [p for p in [*(output_dir / "checkpoints").glob("*.ckpt"), *output_dir.glob("hpc_ckpt_*.ckpt")]
+             if p.is_file()]
+    return sorted(found, key=lambda p: p.stat().st_mtime, reverse=True)
+
+
+def newest_valid(paths: list[Path]) -> tuple[Optional[Path], Optional[dict[str, Any]]]:
+    """The first of `paths` that loads (with its contents); each one that does not is named in a warning."""
+    for path in paths:
+        ckpt, why = read_checkpoint(path)
+        if ckpt is not None:
+            return path, ckpt
+        log.warning("skipping checkpoint %s: it %s", path, why)
+    return None, None
+
+
+def resume_checkpoint(ckpt_path: Optional[str], output_dir: Path) -> tuple[Optional[Path], Optional[dict[str, Any]]]:
+    """The checkpoint a run resumes from, and its contents (None, None for a fresh start).
+
+    ckpt_path: null (resume from the newest valid checkpoint in the reused output folder, if any), "last"
+    (``checkpoints/last.ckpt``; if it does not load, the newest valid one beside it, with a warning; an error
+    if there is none) or a path (that file, which must load).
+    """
+    remove_stale_temporaries(output_dir)
+    if ckpt_path is None:
+        path, ckpt = newest_valid(candidates(output_dir))
+        if path is not None:
+            log.info("resuming from %s (the output dir holds a checkpoint; use a new dir to start afresh)", path)
+        return path, ckpt
+    if str(ckpt_path) == "last":
+        last = output_dir / "checkpoints" / "last.ckpt"
+        if not last.is_file():
+            raise FileNotFoundError(f"ckpt_path=last: no checkpoint at {last}; expected a Lightning checkpoint "
+                                    f"file, or ckpt_path=last with hydra.run.dir set to the run to resume")
+        path, ckpt = newest_valid([last, *[p for p in candidates(output_dir) if p != last]])
+        if path is None:
+            raise ValueError(f"ckpt_path=last: {last} does not load and no other checkpoint of "
+                             f"{output_dir} does; start afresh in a new output dir")
+        log.info("resuming from %s", path)
+        return path, ckpt
+    path = Path(str(ckpt_path))
+    if not path.is_file():
+        raise FileNotFoundError(f"ckpt_path={ckpt_path}: no checkpoint at {path}; expected a Lightning checkpoint "
+                                f"file, or ckpt_path=last with hydra.run.dir set to the run to resume")
+    ckpt, why = read_checkpoint(path)
+    if ckpt is None:
+        raise ValueError(f"ckpt_path={ckpt_path}: the file {why}; pick another checkpoint")
+    return path, ckpt

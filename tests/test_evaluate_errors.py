@@ -1,0 +1,299 @@
+"""`python -m lnf.evaluate` refuses what it would not use or cannot do, says where rollouts diverge, and keeps its
+results when a figure fails: unknown keys (lnf.config_keys), bad values, divergence metrics and warnings."""
+from __future__ import annotations
+
+import json
+import logging
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from omegaconf import OmegaConf
+
+import lnf
+from helpers import CONF, ROOT, TINY, compose_config
+from lnf.integrators import RK4
+
+pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("evaluate_errors")]
+
+EXPERIMENTS = sorted(p.stem for p in (Path(CONF) / "experiment").glob("*.yaml"))
+
+
+@pytest.fixture(scope="module")
+def ckpt(tmp_path_factory) -> Path:
+    """One tiny pendulum checkpoint (1 epoch) shared by the tests of this file, which only read it."""
+    from lnf.train import train
+
+    tmp = tmp_path_factory.mktemp("pendulum")
+    cfg = compose_config("train", ["+experiment=pendulum", "trainer=smoke", "trainer.max_epochs=1", "logger=csv",
+                                   *TINY, "evaluation.figures=0", "evaluation.every_n_epochs=0"], tmp)
+    train(cfg)
+    path = Path(cfg.paths.output_dir) / "checkpoints" / "last.ckpt"
+    assert path.is_file()
+    return path
+
+
+def eval_cfg(ckpt: Path, overrides: list[str], tmp_path: Path):
+    return compose_config("evaluate", [f"ckpt_path={ckpt}", "figures=0", *overrides], tmp_path)
+
+
+# -- 1. unknown keys ------------------------------------------------------------------------------------------
+def test_cli_refuses_a_config_group_and_a_key_it_does_not_use(ckpt, tmp_path):
+    """`+scene=pendulum` used to evaluate the checkpoint's scene while run.json recorded the bogus one."""
+    run_dir = tmp_path / "run"
+    env = {**os.environ, "LNF_ROOT": str(tmp_path), "WANDB_MODE": "offline"}
+    proc = subprocess.run([sys.executable, "-m", "lnf.evaluate", f"ckpt_path={ckpt}", "+scene=pendulum", "+foo=1",
+                           "figures=0", f"hydra.run.dir={run_dir}"], cwd=ROOT, env=env, capture_output=True,
+                          text=True, timeout=300)
+    assert proc.returncode != 0, proc.stdout[-2000:]
+    assert "lnf.evaluate does not use the key(s) foo, scene" in proc.stderr, proc.stderr[-3000:]
+    assert "it takes task_name, ckpt_path, split" in proc.stderr
+    assert not (run_dir / "metrics.json").exists() and not (run_dir / "run.json").exists()
+
+
+@pytest.mark.parametrize("override,key", [("+scene=pendulum", "scene"), ("+foo=1", "foo"),
+                                          ("+grid.bar=2", "grid.bar"), ("+model=pod", "model"),
+                                          ("+evaluation.long_steps=3", "evaluation")])
+def test_evaluate_refuses_unknown_keys(ckpt, tmp_path, override, key):
+    cfg = eval_cfg(ckpt, [override], tmp_path)
+    with pytest.raises(ValueError, match=rf"lnf.evaluate does not use the key\(s\) {key}\b.*it takes task_name, ckpt_path, split, "
+                                             r".*and the config groups integrator, quadrature, dynamics, paths"):
+        lnf_evaluate(cfg)
+    assert not (tmp_path / "out" / "metrics.json").exists()
+
+
+def test_unknown_nested_key_lists_what_its_node_takes(ckpt, tmp_path):
+    with pytest.raises(ValueError, match=r"grid\.kindd.*grid takes kind, resolution, n_points, seed.*did you mean "
+                                         r"grid\.kind"):
+        lnf_evaluate(eval_cfg(ckpt, ["+grid.kindd=uniform"], tmp_path))
+
+
+def test_documented_evaluate_overrides_are_accepted(tmp_path):
+    from lnf.config_keys import check_known_keys
+
+    for overrides in (["integrator=rk4", "dt=0.01", "horizon=20", "grid.kind=uniform", "grid.resolution=128"],
+                      ["quadrature=uniform", "quadrature.resolution=32", "dynamics=tabulated", "long_steps=10"],
+                      ["dynamics=lagrangian", "initial_states=[[2.8,0.0]]", "threads=1", "integrator.substeps=2"]):
+        check_known_keys(compose_config("evaluate", ["ckpt_path=x.ckpt", *overrides], tmp_path), "evaluate",
+                         "lnf.evaluate")
+
+
+@pytest.mark.parametrize("overrides", [[f"+experiment={e}"] for e in EXPERIMENTS] + [
+    ["+experiment=pendulum", "hparams_search=pendulum_optuna"], ["+experiment=pendulum", "dynamics=latent_mlp"],
+    ["+experiment=elastic", "model=pod", "logger=none"], ["dynamics=tabulated", "trainer=smoke", "model=full_order"],
+    ["+experiment=pendulum", "evaluation.long_steps=5", "data.n_train=3"]], ids=lambda o: " ".join(o))
+def test_train_config_passes_with_every_experiment_and_search(tmp_path, overrides):
+    """lnf.train can call the same check: `# @package _global_` experiments may add top-level keys (tags)."""
+    from lnf.config_keys import check_known_keys
+
+    cfg = compose_config("train", overrides, tmp_path)
+    check_known_keys(cfg, "train", "lnf.train", allowed_extra=("experiment",))
+    check_known_keys(OmegaConf.masked_copy(cfg, [k for k in cfg if k != "hydra"]), Path(CONF) / "train.yaml",
+                     "lnf.train", allowed_extra=("experiment",))
+
+
+@pytest.mark.parametrize("override,key", [("+foo=1", "foo"), ("+evaluation.foo=1", "evaluation.foo"),
+                                          ("+ckpt=last", "ckpt")])
+def test_train_config_refuses_unknown_keys(tmp_path, override, key):
+    from lnf.config_keys import check_known_keys
+
+    cfg = compose_config("train", ["+experiment=pendulum", override], tmp_path)
+    with pytest.raises(ValueError, match=rf"lnf.train does not use the key\(s\) {key}\b.*it takes task_name, seed, .*tags"
+                                             r".*and the config groups scene, model, .*experiment"):
+        check_known_keys(cfg, "train", "lnf.train", allowed_extra=("experiment",))
+
+
+def test_check_known_keys_derives_the_keys_from_any_primary_file(tmp_path):
+    """Keys of the file, its defaults' groups, `_global_` group options' keys and sub-keys of its plain nodes."""
+    from lnf.config_keys import allowed_keys, check_known_keys
+
+    (tmp_path / "opt").mkdir()
+    (tmp_path / "opt" / "a.yaml").write_text("# a comment\n# @package _global_\nextra: 1\nnode:\n  y: 2\n")
+    (tmp_path / "opt" / "b.yaml").write_text("z: 3\n")
+    primary = tmp_path / "main.yaml"
+    primary.write_text("defaults:\n  - opt: b\n  - _self_\nalpha: 1\nnode:\n  x: 1\n  deep:\n    k: 0\n")
+    allowed = allowed_keys(primary)
+    assert allowed["opt"] is None and allowed["alpha"] is None and allowed["extra"] is None
+    assert allowed["node"] == {"x": None, "deep": {"k": None}, "y": None} and "hydra" in allowed
+    good = OmegaConf.create({"alpha": 2, "opt": {"anything": 1}, "node": {"x": 1, "deep": {"k": 1}}, "hydra": {}})
+    check_known_keys(good, primary, "tool")
+    bad = OmegaConf.create({"alpha": 2, "beta": 1, "node": {"x": 1, "deep": {"k": 1, "q": 2}}})
+    with pytest.raises(ValueError, match=r"tool does not use the key\(s\) beta, node\.deep\.q.*node\.deep takes k"):
+        check_known_keys(bad, primary, "tool")
+    check_known_keys(bad, primary, "tool", allowed_extra=("beta", "node.deep.q"))
+    with pytest.raises(FileNotFoundError, match="missing.yaml"):
+        check_known_keys(good, tmp_path / "missing.yaml", "tool")
+
+
+# -- 2. bad values --------------------------------------------------------------------------------------------
+BAD_VALUES = [
+    ("dt=nan", r"dt must be a finite number > 0 \[s\].*got nan"),
+    ("dt=inf", r"dt must be a finite number > 0 \[s\].*got inf"),
+    ("dt=0", r"dt must be a finite number > 0 \[s\].*got 0"),
+    ("dt=-0.05", r"dt must be a finite number > 0 \[s\].*got -0.05"),
+    ("dt=abc", r"dt must be a finite number > 0 \[s\].*got 'abc'"),
+    ("dt=true", r"dt must be a finite number > 0 \[s\].*got True"),
+    ("horizon=inf", r"horizon must be a finite number > 0 \[s\].*got inf"),
+    ("horizon=nan", r"horizon must be a finite number > 0 \[s\].*got nan"),
+    ("horizon=-1", r"horizon must be a finite number > 0 \[s\].*got -1"),
+    ("horizon=abc", r"horizon must be a finite number > 0 \[s\].*got 'abc'"),
+    ("train_horizon=nan", r"train_horizon must be a finite number ≥ 0 \[s\].*got nan"),
+    ("max_trajectories=0", r"max_trajectories must be an integer ≥ 1.*got 0"),
+    ("max_trajectories=-3", r"max_trajectories must be an integer ≥ 1.*got -3"),
+    ("max_trajectories=1.5", r"max_trajectories must be an integer ≥ 1.*got 1.5"),
+    ("max_trajectories=abc", r"max_trajectories must be an integer ≥ 1.*got 'abc'"),
+    ("max_trajectories=inf", r"max_trajectories must be an integer ≥ 1.*got inf"),
+    ("long_steps=-1", r"long_steps must be an integer ≥ 0.*got -1"),
+    ("long_steps=abc", r"long_steps must be an integer ≥ 0.*got 'abc'"),
+    ("long_trajectories=0", r"long_trajectories must be an integer ≥ 1.*got 0"),
+    ("figures=-1", r"figures must be an integer ≥ 0.*got -1"),
+    ("figures=nan", r"figures must be an integer ≥ 0.*got nan"),
+    ("max_reduction_points=0", r"max_reduction_points must be an integer ≥ 1.*got 0"),
+    ("threads=-1", r"threads must be an integer ≥ 1.*got -1"),
+    ("split=foo", r"split must be one of train, val, test, got 'foo'"),
+    ("grid.kind=hex", r"grid.kind must be 'stored', 'uniform' or 'random', got 'hex'"),
+    ("grid.resolution=abc", r"grid.resolution must be an integer ≥ 1.*got 'abc'"),
+    ("grid.n_points=0", r"grid.n_points must be an integer ≥ 1.*got 0"),
+]
+
+
+@pytest.mark.parametrize("override,match", BAD_VALUES, ids=[o for o, _ in BAD_VALUES])
+def test_bad_values_are_refused_before_anything_is_loaded(ckpt, tmp_path, monkeypatch, override, match):
+    import lnf.evaluate
+
+    def no_load(*args, **kwargs):
+        raise AssertionError("the checkpoint was loaded before the settings were checked")
+
+    monkeypatch.setattr(lnf.evaluate, "load", no_load)
+    with pytest.raises(ValueError, match=match):
+        lnf.evaluate.evaluate(eval_cfg(ckpt, [override], tmp_path))
+
+
+def test_missing_checkpoint_path_is_a_clear_error(tmp_path):
+    with pytest.raises(ValueError, match=r"ckpt_path is required"):
+        lnf_evaluate(compose_config("evaluate", [], tmp_path))
+
+
+# -- 3. divergence with a place -------------------------------------------------------------------------------
+class DivergesAtStep(RK4):
+    """RK4 that marks trajectory `which` as diverged at step `step` (through the integrator's own check)."""
+
+    def __init__(self, step: int, which: int = 1) -> None:
+        super().__init__()
+        self.at, self.which, self.calls = step, which, 0
+
+    def _bad(self, *xs):
+        self.calls += 1
+        bad = super()._bad(*xs)
+        if self.calls == self.at:
+            bad[self.which] = True
+        return bad
+
+
+def _setup(ckpt):
+    model = lnf.load(ckpt)
+    scene = model.scene
+    times = 0.05 * np.arange(12)
+    states = scene.simulate(np.array([[0.5, 0.0], [1.0, 0.2]]), times)
+    from lnf.quadrature import midpoint_grid
+
+    return model, states, times, midpoint_grid(8, scene.bounds).numpy()
+
+
+def test_rollout_divergence_metrics_and_warning(ckpt, caplog):
+    from lnf.evaluation import evaluate_rollouts
+
+    model, states, times, points = _setup(ckpt)
+    with caplog.at_level(logging.WARNING, logger="lnf.evaluation"):
+        res = evaluate_rollouts(model, states, times, points, 0.3, integrator=DivergesAtStep(3),
+                                label="test rollout")
+    m = res.metrics
+    assert m["diverged_count"] == 1.0 and m["diverged_fraction"] == 0.5
+    assert m["first_divergence_step"] == 3.0 and m["first_divergence_time"] == pytest.approx(0.15)
+    assert np.isnan(res.q_pred[1, 3:]).all() and np.isfinite(res.q_pred[0]).all()
+    warned = [r.getMessage() for r in caplog.records if r.name == "lnf.evaluation" and r.levelno == logging.WARNING]
+    assert any("test rollout" in w and "1 of 2 trajectories diverged" in w and "step 3" in w and "t = 0.15 s" in w
+               for w in warned), warned
+
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="lnf.evaluation"):
+        fine = evaluate_rollouts(model, states, times, points, 0.3, integrator="rk4").metrics
+    assert fine["diverged_count"] == 0.0 and fine["diverged_fraction"] == 0.0
+    assert fine["first_divergence_step"] == -1.0 and fine["first_divergence_time"] == -1.0
+    assert not [r for r in caplog.records if r.name == "lnf.evaluation" and r.levelno >= logging.WARNING]
+
+
+def test_long_horizon_divergence_metrics_and_warning(ckpt, caplog):
+    from lnf.evaluation import long_horizon_energy
+
+    model, states, times, points = _setup(ckpt)
+    with caplog.at_level(logging.WARNING, logger="lnf.evaluation"):
+        out = long_horizon_energy(model, states[:, 0], points, 0.05, 40, integrator=DivergesAtStep(7, which=0))
+    assert out["diverged_count_long"] == 1.0 and out["diverged_fraction_long"] == 0.5
+    assert out["first_divergence_step_long"] == 7.0 and out["first_divergence_time_long"] == pytest.approx(0.35)
+    assert np.isinf(out["energy_drift_long/max"]) and "energy_drift_long/median" in out  # existing keys stay
+    warned = [r.getMessage() for r in caplog.records if r.name == "lnf.evaluation" and r.levelno == logging.WARNING]
+    assert any("long-horizon energy check" in w and "1 of 2 trajectories diverged" in w and "step 7" in w
+               for w in warned), warned
+
+    fine = long_horizon_energy(model, states[:, 0], points, 0.05, 40, integrator="rk4")
+    assert fine["diverged_count_long"] == 0.0 and fine["diverged_fraction_long"] == 0.0
+    assert fine["first_divergence_step_long"] == -1.0 and fine["first_divergence_time_long"] == -1.0
+
+
+def test_long_horizon_non_finite_energy_counts_as_divergence(ckpt, monkeypatch):
+    """A rollout whose states stay finite but whose energy does not (diverged_step −1) is reported too."""
+    from lnf.evaluation import long_horizon_energy
+
+    model, states, times, points = _setup(ckpt)
+    energy = model.energy
+
+    def nan_energy(q, v, quadrature=None):
+        kin, pot = energy(q, v, quadrature)
+        kin = kin.clone()
+        kin[1, 2:] = float("inf")  # recorded sample 2 = step 20 (record_every = 10)
+        return kin, pot
+
+    monkeypatch.setattr(model, "energy", nan_energy)
+    out = long_horizon_energy(model, states[:, 0], points, 0.05, 40, integrator="rk4")
+    assert out["diverged_count_long"] == 1.0 and out["first_divergence_step_long"] == 20.0
+    assert out["first_divergence_time_long"] == pytest.approx(1.0) and np.isinf(out["energy_drift_long/max"])
+
+
+def test_evaluate_writes_divergence_metrics(ckpt, tmp_path):
+    metrics = lnf_evaluate(eval_cfg(ckpt, ["integrator=rk4", "long_steps=10", "long_trajectories=1",
+                                           "max_trajectories=1"], tmp_path))
+    saved = json.loads((tmp_path / "out" / "metrics.json").read_text())
+    for key in ("diverged_count", "diverged_fraction", "first_divergence_step", "first_divergence_time",
+                "diverged_count_long", "diverged_fraction_long", "first_divergence_step_long",
+                "first_divergence_time_long"):
+        assert key in saved and saved[key] == metrics[key], key
+    if metrics["diverged_count"] == 0:
+        assert metrics["first_divergence_step"] == -1.0 and metrics["first_divergence_time"] == -1.0
+
+
+# -- 4. a figure cannot cost the results ----------------------------------------------------------------------
+def test_failing_figure_keeps_metrics_and_run_record(ckpt, tmp_path, monkeypatch, caplog):
+    import lnf.evaluate
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("no display for matplotlib")
+
+    monkeypatch.setattr(lnf.evaluate, "save_evaluation_figures", broken)
+    cfg = compose_config("evaluate", [f"ckpt_path={ckpt}", "figures=1", "max_trajectories=1"], tmp_path)
+    with caplog.at_level(logging.WARNING, logger="lnf.evaluate"):
+        metrics = lnf.evaluate.evaluate(cfg)
+    out = tmp_path / "out"
+    assert json.loads((out / "metrics.json").read_text()) == pytest.approx(metrics)
+    assert json.loads((out / "run.json").read_text())["config"]["ckpt_path"] == str(ckpt)
+    assert any("could not draw Figure 3" in r.getMessage() and "no display for matplotlib" in r.getMessage()
+               for r in caplog.records if r.name == "lnf.evaluate" and r.levelno == logging.WARNING)
+
+
+def lnf_evaluate(cfg):
+    from lnf.evaluate import evaluate
+
+    return evaluate(cfg)
