@@ -15,10 +15,11 @@ at dt = 0.1 as well as its trained 0.05. Writes ``pareto.csv``, ``pareto.png`` (
 the 64×64 test grid, and against training wall-clock; Pareto fronts marked), ``quadrature.png`` and
 ``summary.md`` into outputs/studies/pareto/.
 
-On the other scenes, ours sweeps its width only (their latent dimension is model_size.py's study), methods a
-scene cannot run are left out (studylib.UNSUPPORTED), a scene that trains with the tabulated pullback gets
-the exact one as its variant, and on the elastic scenes the FEM's own cost per trajectory, measured in the
-same run, is drawn as the full-order line.
+On the other scenes (`--scene`), ours sweeps its width only (their latent dimension is model_size.py's
+study), methods a scene cannot run are left out (as its `Scene.baselines()` says), a scene that trains with
+the tabulated pullback gets the exact one as its variant, and on a scene whose full-order reference is itself
+costly (`Scene.expensive_reference`: the elastic scenes' FEM) the simulator's own cost per trajectory, measured
+in the same run, is drawn as the full-order line.
 """
 from __future__ import annotations
 
@@ -57,10 +58,10 @@ def add_cost(rows: list[dict], frames: int) -> None:
 
 
 def architecture_knobs(study: S.Study) -> bool:
-    """Whether this study sweeps our depth, K and latent dimension as well as the width: on the pendulum only.
-    The other scenes chart the width sweep (their latent dimension is model_size.py's question), which keeps
-    each scene's study near 30 min on 2 cores."""
-    return study.mode != "smoke" and study.scene == "pendulum"
+    """Whether this study sweeps our depth, K and latent dimension as well as the width: on the default
+    experiment only (the paper's pendulum, studylib.default_experiment). The other scenes chart the width sweep
+    (their latent dimension is model_size.py's question), which keeps each scene's study near 30 min on 2 cores."""
+    return study.mode != "smoke" and study.is_default_scene()
 
 
 def sweeps(study: S.Study) -> None:
@@ -138,7 +139,7 @@ def tabulated_sweeps(study: S.Study) -> None:
     other = "lagrangian" if experiment_dynamics(study) == "tabulated" else "tabulated"
     knob = "exact" if other == "lagrangian" else "tabulated"
     widths = checkpoints(study, "lnf_width")
-    if other == "tabulated" and widths and not conservative(widths[0][1]):
+    if other == "tabulated" and widths and not study.scene_object().is_conservative:
         print(f"[{study.name}] no tabulated variant: {study.scene} has damping or loads (the table needs a "
               "conservative scene)", flush=True)
         widths = []
@@ -157,18 +158,10 @@ def tabulated_sweeps(study: S.Study) -> None:
                        "lnf.evaluate", {"method": "latent_mlp", "knob": "dt", "model.width": width})
 
 
-def conservative(ckpt: Path) -> bool:
-    """Whether the scene of a trained model of ours has no damping or external load (what a table needs)."""
-    from lnf.model import load
-
-    model = load(ckpt)
-    model.set_tabulation(None)
-    return model.dynamics().force_fn is None
-
-
 def simulator_seconds(ckpt: Path, threads: int) -> dict:
-    """Wall-clock per test trajectory of the scene's own full-order simulator over the test horizon (the FEM
-    of the elastic scenes), measured in this run (the faster of two): the ground truth, so its error is 0."""
+    """Wall-clock per test trajectory of the scene's own full-order simulator over the test horizon (on a scene
+    with an expensive reference, e.g. the elastic scenes' FEM), measured in this run (the faster of two): the
+    ground truth, so its error is 0."""
     import torch
 
     from lnf.model import load
@@ -359,7 +352,7 @@ def summary(study: S.Study, rows: list[dict], simulator: dict | None = None) -> 
                   f"- on rollout + decoding cost (`{COST}`): {dominance(COST, lnf)} with every point of ours; "
                   f"{dominance(COST, exact)} {exact_text}.\n"]
     else:
-        lines.append("\nNo black-box latent MLP: it cannot run this scene (studylib.UNSUPPORTED).\n")
+        lines.append("\nNo black-box latent MLP: it cannot run this scene (the scene's baselines() says so).\n")
     if simulator and ref:
         sim = simulator["simulator_seconds_per_trajectory"]
         lines.append(f"\nThe scene's full-order simulator (the ground truth), measured in this run: {S.fmt(sim)} s per "
@@ -414,7 +407,7 @@ def main(argv=None) -> None:
     fill_frames(rows)
     add_cost(rows, max(int(float(r["frames"])) for r in rows if "frames" in r))
     simulator = None
-    if study.scene in S.FEM_SCENES:  # measured with the sweeps: reused with them, unless --fresh
+    if study.scene_object().expensive_reference:  # measured with the sweeps: reused with them, unless --fresh
         stored = study.out / "simulator.json"
         if stored.is_file() and not study.fresh:
             simulator = json.loads(stored.read_text())

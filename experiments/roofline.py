@@ -88,7 +88,7 @@ def scene_of(study: S.Study) -> tuple[Any, int, Any, int, bool, bool]:
     from lnf.model import build
 
     cfg = study.composed()
-    scene = build(OmegaConf.to_container(cfg.scene, resolve=True))
+    scene = study.scene_object()
     if not str(cfg.quadrature.get("_target_", "")).endswith("GaussLegendre"):
         sys.exit(f"roofline.py --scene {study.scene}: expected the experiment to use a Gauss–Legendre quadrature "
                  f"(quadrature=gauss_legendre), got {cfg.quadrature.get('_target_')!r}")
@@ -146,7 +146,7 @@ def main(argv=None) -> None:
 
     def extra(p):
         p.add_argument("--order", type=int, default=None,
-                      help="Gauss–Legendre nodes per axis inside the dynamics (default: the experiment's, 8 on the pendulum)")
+                      help="Gauss–Legendre nodes per axis inside the dynamics (default: the experiment's)")
 
     study, args = S.parse_args("roofline", __doc__, argv, extra)
     torch.set_num_threads(study.threads)

@@ -9,10 +9,11 @@ multiruns of `python -m lnf.evaluate`:
 
 - long horizons: 20× and 200× the training horizon (50 s and 500 s at a 0.05 s step), energy drift and
   vpt per method and integrator (200×: sampled every 0.5 s, integrated at 0.05 s);
-- high energy: θ0 = 0.5π (edge of the training range) … 0.99π at rest, and one rotating pendulum above
-  the separatrix (θ0 = 0, θ̇0 = 7 rad/s); on the other scenes (`--scene`, see HIGH_ENERGY) both links of the
-  double pendulum at θ0, the bump's pendulum as the pendulum's, the cantilever released at rest from tip
-  deflections 0.15 m (edge of the training range) … 0.4 m;
+- high energy: the scene's release cases (`Scene.stability_cases()`, skipped with a note on a scene that has
+  none): on the pendulum θ0 = 0.5π (edge of the training range) … 0.99π at rest, and one rotating pendulum
+  above the separatrix (θ0 = 0, θ̇0 = 7 rad/s); both links of the double pendulum at θ0, the bump's pendulum
+  as the pendulum's, the cantilever released at rest from tip deflections 0.15 m (edge of the training
+  range) … 0.4 m;
 - large time steps: dt = 0.05 … 0.8 s until each method and integrator fails (a trajectory diverges, or
   its error exceeds max(2 × its own dt = 0.05 error, 0.05));
 - resolution transfer: trained on 25 % of 32×32, evaluated on 16², 64², 128² and 4096 random points.
@@ -23,57 +24,32 @@ summary.md into outputs/studies/stability/.
 from __future__ import annotations
 
 import sys
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Optional, Sequence
+from typing import TYPE_CHECKING, Any, Optional, Sequence
 
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import studylib as S  # noqa: E402
 
+if TYPE_CHECKING:
+    from lnf.scenes.base import StabilityCases
+
 INTEGRATORS = {"lnf": ["implicit_midpoint", "rk4"], "latent_mlp": ["rk4"], "pod": ["implicit_midpoint", "rk4"],
                "full_order": ["implicit_midpoint", "rk4"]}
 SHORT = {"implicit_midpoint": "midpoint-4", "rk4": "RK4"}
 
 
-@dataclass(frozen=True)
-class StressCases:
-    """The high-energy question of one scene: releases at rest beyond the training range, one per `levels`
-    value (the x of the chart), and optionally one state above the separatrix (`rotation`)."""
-
-    levels: tuple[float, ...]
-    xlabel: str
-    train_edge: float  # the training range ends at this level (shaded in the chart)
-    train_text: str
-    rotation: Optional[tuple[float, ...]] = None
-    unit: float = 1.0  # the scene's release amplitude of level 1 (π: levels are θ0 / π)
-
-    def states(self, scene: Any, level: float) -> np.ndarray:
-        """The full-order initial state (state_dim,) of `level` for `scene`: its release at rest."""
-        return scene.released_at_rest(level * self.unit)
-
-
-PENDULUM_CASES = StressCases((0.5, 0.7, 0.85, 0.95, 0.99), "θ0 / π (released at rest; 1 = separatrix)", 0.5,
-                             "training range |θ0| ≤ π/2", rotation=(0.0, 7.0), unit=np.pi)
-ELASTIC_CASES = StressCases((0.15, 0.2, 0.25, 0.3, 0.4), "tip deflection of the release at rest δ [m]", 0.15,
-                            "training range |δ| ≤ 0.15 m")
-HIGH_ENERGY: dict[str, StressCases] = {
-    "pendulum": PENDULUM_CASES,
-    "bump": PENDULUM_CASES,  # the bump rides on a pendulum angle with the pendulum's training range
-    "double_pendulum": StressCases((0.5, 0.7, 0.85, 0.95, 0.99), "θ1(0) = θ2(0) = θ0, at rest: θ0 / π", 0.5,
-                                   "training range |θ_i| ≤ π/2", unit=np.pi),
-    "elastic": ELASTIC_CASES,
-    "elastic_actuated": ELASTIC_CASES,
-}
 INLINE_STATE_SIZE = 8  # larger full-order states (the elastic mesh) go to lnf.evaluate as .npy files
 
 
-def stress_cases(study: S.Study) -> Optional[StressCases]:
-    return HIGH_ENERGY.get(study.scene)
+def stress_cases(study: S.Study) -> Optional[StabilityCases]:
+    """The scene's high-energy release cases (``Scene.stability_cases()``), or None: no high-energy part."""
+    return study.scene_object().stability_cases()
 
 
-def initial_state_arguments(study: S.Study, scene: Any, cases: StressCases, levels: Sequence[float]) -> dict[str, float]:
+def initial_state_arguments(study: S.Study, scene: Any, cases: StabilityCases,
+                            levels: Sequence[float]) -> dict[str, float]:
     """`initial_states=` values for lnf.evaluate → their level: inline lists for small states, else .npy files
     written into the study's folder."""
     out = {}
@@ -108,12 +84,12 @@ def evaluations(study: S.Study, ckpts: dict[str, Path]) -> None:
     """One multirun per (question, integrator), sweeping the checkpoints of every method that integrator applies to."""
     smoke = study.mode == "smoke"
     by_path = {str(p): m for m, p in ckpts.items()}
+    scene = study.scene_object()
     cases = stress_cases(study)
-    scene = None
-    if cases is not None:
-        from lnf.model import load
-
-        scene = load(ckpts["lnf"]).scene
+    if cases is None:
+        print(f"[{study.name}] no high-energy part: scene {study.scene!r} declares no stability_cases() "
+              "(see lnf.scenes.Scene.stability_cases)", flush=True)
+    expensive = scene.expensive_reference
     before = len(study.rows)
     for integ in ("implicit_midpoint", "rk4"):
         paths = ",".join(str(ckpts[m]) for m in ckpts if integ in INTEGRATORS[m])
@@ -124,7 +100,7 @@ def evaluations(study: S.Study, ckpts: dict[str, Path]) -> None:
         study.multirun(f"long20_{integ}", [*common, f"horizon={h20}", "dt=0.05", "max_trajectories=4",
                                            "grid.kind=uniform", "grid.resolution=32"], "lnf.evaluate",
                        {**lab, "study": "long", "horizon_factor": 20})
-        if not smoke and study.scene in S.FEM_SCENES:  # energy drift of 10 000 steps: no 500 s FEM reference per job
+        if not smoke and expensive:  # energy drift of 10 000 steps: no 500 s full-order reference per job
             study.multirun(f"long200_{integ}", [*common, "long_steps=10000", "long_trajectories=4"], "lnf.evaluate",
                            {**lab, "study": "long", "horizon_factor": 200})
         elif not smoke:
@@ -281,6 +257,7 @@ def plot(study: S.Study, rows: list[dict]) -> Path:
 
 def summary(study: S.Study, rows: list[dict]) -> Path:
     cases = stress_cases(study)
+    expensive = study.scene_object().expensive_reference
     highest = f"{cases.levels[-1]:g}: {cases.xlabel}" if cases else "none"
     table = []
     for m in methods(study):
@@ -298,7 +275,7 @@ def summary(study: S.Study, rows: list[dict]) -> Path:
                 "vpt20": long20[0].get("vpt/median") if long20 else "",
                 "drift200": _drift(long200[0]) if long200 else "",
                 # a costly scene's 200× row measures the energy alone: its vpt would be the default 5 s horizon's
-                "vpt200": long200[0].get("vpt/median") if long200 and study.scene not in S.FEM_SCENES else "",
+                "vpt200": long200[0].get("vpt/median") if long200 and not expensive else "",
                 "err_099": energy[-1]["field_rel_l2/all/median"] if energy else "",
                 "err_rot": rot[0]["field_rel_l2/all/median"] if rot else "",
                 "max_dt": failure_dt(dts) if dts else "",

@@ -6,6 +6,12 @@ its overrides into one CSV, and draws its charts from that CSV. A sweep whose jo
 same command is reused (delete the folder or pass --fresh to rerun it). Every study takes
 ``--scene`` (any ``conf/experiment/<scene>.yaml``), ``--full`` (the full study: the default model size
 and training budget) and ``--smoke`` (tiny settings, for the test suite).
+
+No study names a scene: what a study does on a scene it asks the scene object, built from the composed
+experiment config (:meth:`Study.scene_object`): which baselines can run it (``Scene.baselines()``), whether
+its full-order reference is expensive (``Scene.expensive_reference``), its stability release cases
+(``Scene.stability_cases()``). Without ``--scene`` a study runs the experiment named like the training
+config's default scene (:func:`default_experiment`).
 """
 from __future__ import annotations
 
@@ -40,14 +46,6 @@ LABELS = {"lnf": "LNF (ours)", "latent_mlp": "black-box latent MLP", "pod": "POD
 COLORS = {"lnf": "tab:blue", "latent_mlp": "tab:red", "pod": "tab:green", "full_order": "tab:gray"}
 MARKERS = {"lnf": "o", "latent_mlp": "s", "pod": "^", "full_order": "D"}
 
-# baselines that cannot run a scene: the nodal full-order model has only a flat kinetic energy, no ∇_X q and no
-# external loads (those scenes bring their own simulator); the black box takes no per-trajectory loads
-UNSUPPORTED = {"full_order": {"double_pendulum", "elastic", "elastic_actuated"}, "latent_mlp": {"elastic_actuated"}}
-# scenes whose ground truth is itself a costly full-order discretisation (the FEM): pareto.py draws its cost as the
-# full-order line; stability.py does not re-simulate 500 s of it per job. The pendulum scenes' simulators
-# integrate one or two angles, which says nothing about a full-order model.
-FEM_SCENES = {"elastic", "elastic_actuated"}
-
 COMMON = ["logger=csv", "evaluation.every_n_epochs=0", "evaluation.figures=0", "trainer.enable_progress_bar=false"]
 # Reduced settings (each study under 30 min on 2 CPU cores): smaller SIREN, 15 epochs, higher lr
 REDUCED_NEURAL = ["model.width=64", "model.hyper_width=64", "trainer.max_epochs=15", "optimizer.lr=2e-3"]
@@ -69,6 +67,7 @@ class Study:
     fresh: bool = False
     rows: list[dict[str, Any]] = field(default_factory=list)
     started: float = field(default_factory=time.perf_counter)
+    _scene: Any = field(default=None, init=False, repr=False, compare=False)
 
     # -- settings -------------------------------------------------------------------------------
     def base(self) -> list[str]:
@@ -123,15 +122,31 @@ class Study:
         with initialize_config_dir(str(ROOT / "conf"), version_base=None):
             return compose("train", overrides=[f"+experiment={self.scene}"], return_hydra_config=True)
 
+    def scene_object(self) -> Any:
+        """The scene of the study's experiment (a :class:`lnf.scenes.Scene`), built once from the composed
+        config: what the study asks what the scene can do."""
+        if self._scene is None:
+            from omegaconf import OmegaConf
+
+            from lnf.model import build
+
+            self._scene = build(OmegaConf.to_container(self.composed().scene, resolve=True))
+        return self._scene
+
+    def is_default_scene(self) -> bool:
+        """Whether the study runs the default experiment (no --scene given, see :func:`default_experiment`)."""
+        return self.scene == default_experiment()
+
     def command(self) -> str:
         """The command line that reruns this study (its mode and scene), as summaries and captions print it."""
         mode = "" if self.mode == "reduced" else f" --{self.mode}"
-        scene = "" if self.scene == "pendulum" else f" --scene {self.scene}"
+        scene = "" if self.is_default_scene() else f" --scene {self.scene}"
         return f"python experiments/{self.name}.py{mode}{scene}"
 
     def supports(self, name: str) -> bool:
-        """Whether method `name` can run this study's scene (see UNSUPPORTED)."""
-        return self.scene not in UNSUPPORTED.get(name, set())
+        """Whether method `name` can run this study's scene, as the scene declares (``Scene.baselines()``; a
+        method it does not list can)."""
+        return bool(self.scene_object().baselines().get(name, True))
 
     # -- running --------------------------------------------------------------------------------
     def multirun(self, sweep: str, overrides: Sequence[str], entry: str = "lnf.train",
@@ -180,10 +195,23 @@ class Study:
             print(f"  wrote {p}")
 
 
+def default_experiment() -> str:
+    """The experiment a study runs without ``--scene``: the one named like the default ``scene`` of the training
+    config (conf/train.yaml), i.e. what ``python -m lnf.train`` trains without overrides."""
+    from omegaconf import OmegaConf
+
+    for entry in OmegaConf.load(ROOT / "conf" / "train.yaml").get("defaults", []):
+        if not isinstance(entry, str) and entry.get("scene"):  # `- scene: <name>`; plain strings are `_self_` etc.
+            return str(entry["scene"])
+    raise RuntimeError("conf/train.yaml names no default scene (defaults: - scene: <name>)")
+
+
 def parse_args(name: str, description: str, argv: Optional[Sequence[str]] = None,
                extra: Optional[callable] = None) -> tuple[Study, argparse.Namespace]:
     p = argparse.ArgumentParser(description=description, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--scene", default="pendulum", help="experiment config of the scene (conf/experiment/<scene>.yaml)")
+    default = default_experiment()
+    p.add_argument("--scene", default=default,
+                   help=f"experiment config of the scene (conf/experiment/<scene>.yaml; default {default})")
     g = p.add_mutually_exclusive_group()
     g.add_argument("--full", action="store_true", help="the full study (default model size and training budget)")
     g.add_argument("--smoke", action="store_true", help="tiny settings (the test suite's smoke test)")
@@ -197,7 +225,7 @@ def parse_args(name: str, description: str, argv: Optional[Sequence[str]] = None
         p.error(f"--scene {args.scene!r}: no conf/experiment/{args.scene}.yaml")
     mode = "full" if args.full else "smoke" if args.smoke else "reduced"
     out = args.out or ROOT / "outputs" / "studies" / (name if mode == "reduced" else f"{name}-{mode}")
-    if args.scene != "pendulum" and args.out is None:
+    if args.scene != default and args.out is None:
         out = out.with_name(f"{out.name}-{args.scene}")
     return Study(name=name, scene=args.scene, mode=mode, out=out, threads=args.threads, fresh=args.fresh), args
 

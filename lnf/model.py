@@ -12,6 +12,8 @@ The Python API of lnf (no Lightning or Hydra needed)::
 from __future__ import annotations
 
 import importlib
+import inspect
+import logging
 import math
 from pathlib import Path
 from typing import Any, Optional
@@ -27,6 +29,8 @@ from lnf.reduction import (best_start, project_velocity, projection_loss, pullba
 from lnf.scenes.base import Scene
 from lnf.siren import ModulatedSiren
 
+log = logging.getLogger("lnf.model")
+
 
 def build(spec: dict[str, Any]) -> Any:
     """Instantiate ``{"_target_": "pkg.mod.Class", **kwargs}`` without Hydra (for checkpoints)."""
@@ -36,17 +40,45 @@ def build(spec: dict[str, Any]) -> Any:
         raise ValueError(f"spec needs a '_target_' of the form 'module.Class', got {target!r}")
     module, _, name = str(target).rpartition(".")
     try:
-        cls = getattr(importlib.import_module(module), name)
-    except (ImportError, AttributeError) as err:
-        raise ValueError(f"cannot import {target!r} named in a spec: {err}") from err
+        imported = importlib.import_module(module)
+    except ImportError as err:
+        raise ValueError(f"cannot import module {module!r} of {target!r} named in a spec ({err}): a scene or model "
+                         f"of your own must be importable where it is loaded: run from the folder that holds "
+                         f"{module.split('.')[0]!r}, add that folder to PYTHONPATH, or install it") from err
+    try:
+        cls = getattr(imported, name)
+    except AttributeError as err:
+        raise ValueError(f"module {module!r} ({getattr(imported, '__file__', '?')}) has no {name!r}, which a spec "
+                         f"names as {target!r}: was it renamed?") from err
     return cls(**spec)
 
 
 def build_model(scene: dict[str, Any], model: dict[str, Any], quadrature: dict[str, Any]) -> ReducedModel:
-    """Model from plain specs (``{"_target_": ..., **kwargs}``): what checkpoints store."""
+    """Model from plain specs (``{"_target_": ..., **kwargs}``): what checkpoints store. Settings the model does
+    not take (an experiment's SIREN width given to POD-Galerkin) are dropped with a warning naming them."""
     spec = dict(model)
     spec.setdefault("_target_", "lnf.model.LagrangianNeuralField")
+    dropped = dropped_settings(spec)
+    spec = {k: v for k, v in spec.items() if k not in dropped}
     return build({**spec, "scene": build(scene), "quadrature": build(quadrature)})
+
+
+def dropped_settings(spec: dict[str, Any]) -> list[str]:
+    """Keys of a model spec that its ``_target_`` does not take (each named in a warning), e.g. the neural
+    settings of an experiment (``model.width``) when ``model=pod`` is chosen."""
+    target = str(spec.get("_target_"))
+    module, _, name = target.rpartition(".")
+    try:
+        params = inspect.signature(getattr(importlib.import_module(module), name)).parameters
+    except (ImportError, AttributeError, ValueError, TypeError):
+        return []  # build() reports a target that cannot be imported
+    if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values()):
+        return []
+    unknown = sorted(k for k in spec if k != "_target_" and k not in params)
+    if unknown:
+        log.warning("%s takes no %s: dropped (an experiment may have set them for another model)", name,
+                    ", ".join(f"model.{k}" for k in unknown))
+    return unknown
 
 
 def load(path: "str | Path", map_location: "str | torch.device" = "cpu") -> ReducedModel:

@@ -114,6 +114,27 @@ def _check_grid_shape(grid_shape) -> tuple[int, int]:
     return gs  # type: ignore[return-value]
 
 
+def _check_grid_shape_nd(grid_shape) -> tuple[int, ...]:
+    """1 to 3 positive ints: the evaluation grid of a 1-D, 2-D or 3-D body."""
+    try:
+        gs = tuple(int(n) for n in grid_shape)
+        whole = all(int(a) == a for a in grid_shape)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"grid_shape must be 1 to 3 positive ints (points per axis), got {grid_shape!r}") from exc
+    if not 1 <= len(gs) <= 3 or min(gs) < 1 or not whole:
+        raise ValueError(f"grid_shape must be 1 to 3 positive ints (points per axis), got {grid_shape!r}")
+    return gs
+
+
+def _check_box(bounds, dim: int) -> np.ndarray:
+    """[[lo, hi], ...] of a `dim`-dimensional body as a (dim, 2) array with lo < hi."""
+    arr = _as_float_array(bounds, "bounds").reshape(-1)
+    if arr.shape != (2 * dim,) or not np.all(np.isfinite(arr)) or not np.all(arr[1::2] > arr[0::2]):
+        raise ValueError(f"bounds must be [[lo, hi], ...] with lo < hi for each of the {dim} axes of the grid, "
+                         f"got {np.asarray(bounds).tolist()}")
+    return arr.reshape(dim, 2)
+
+
 def _check_bounds(bounds) -> tuple[float, float, float, float]:
     """Accept ((xmin, xmax), (ymin, ymax)) or (xmin, xmax, ymin, ymax); return imshow extent."""
     arr = _as_float_array(bounds, "bounds").reshape(-1)
@@ -320,6 +341,41 @@ def _draw_fields(
     return axes
 
 
+def _draw_fields_1d(fig: Figure | SubFigure, x: np.ndarray, t: np.ndarray, pred: np.ndarray, true: np.ndarray,
+                    idx: list[int], h: float, field_label: str = "field q"):
+    """A 1-D body: space–time images of predicted, true and |pred − true| (x across, t up, the training
+    horizon dashed), and below them the fields at the snapshot times, predicted solid, true dotted."""
+    import matplotlib as mpl
+
+    err = np.abs(pred - true)
+    vmax, emax = _finite_absmax(pred, true), _finite_absmax(err)
+    top, bottom = fig.subfigures(2, 1, height_ratios=[1.3, 1.0])
+    axes = np.asarray(top.subplots(1, 3, sharex=True, sharey=True, squeeze=False))[0]
+    dx = float(x[1] - x[0]) if len(x) > 1 else 1.0
+    extent = (float(x[0] - dx / 2), float(x[-1] + dx / 2), float(t[0]), float(t[-1]))
+    for ax, img, name, cmap, lo, hi in ((axes[0], pred, "predicted", _FIELD_CMAP, -vmax, vmax),
+                                        (axes[1], true, "true", _FIELD_CMAP, -vmax, vmax),
+                                        (axes[2], err, "|pred − true|", _ERROR_CMAP, 0.0, emax)):
+        im = ax.imshow(np.ma.masked_invalid(img), origin="lower", extent=extent, aspect="auto", vmin=lo, vmax=hi,
+                       cmap=mpl.colormaps[cmap].with_extremes(bad=_MASK_COLOR), interpolation="nearest")
+        ax.axhline(h, color="k", ls="--", lw=0.8)
+        ax.set_title(name, fontsize="small")
+        ax.set_xlabel("x", fontsize="small")
+        ax.tick_params(labelsize="x-small")
+        top.colorbar(im, ax=ax, label=field_label if name != "|pred − true|" else "absolute error", shrink=0.9)
+    axes[0].set_ylabel("time t [s] (dashed: training horizon)", fontsize="small")
+    ax = bottom.subplots()
+    colors = mpl.colormaps["viridis"](np.linspace(0, 0.9, len(idx)))
+    for c, i in zip(colors, idx):
+        where = "before" if t[i] < h else "after"
+        ax.plot(x, pred[i], color=c, lw=1.5, label=f"t = {_format_t(float(t[i]))} s ({where} horizon)")
+        ax.plot(x, true[i], color=c, lw=1.5, ls=":")
+    ax.set_xlabel("x")
+    ax.set_ylabel(f"{field_label}\n(solid: predicted, dotted: true)", fontsize="small")
+    ax.legend(fontsize="x-small", ncols=2)
+    return axes
+
+
 # --------------------------------------------------------------------------------------
 # public API
 # --------------------------------------------------------------------------------------
@@ -430,7 +486,12 @@ def figure3(
     title: str = "",
     field_label: str = "field q",
 ) -> Figure:
-    """The paper's Figure 3 in one figure: top row latent and energies, below the field grid.
+    """The paper's Figure 3 in one figure: top row latent and energies, below the fields.
+
+    The fields are drawn by the body's dimension: a 1-D body as space–time images (predicted, true, error)
+    and line plots at the snapshot times, a 2-D body as images at the snapshot times, a 3-D body as the
+    images of its middle slice across the third axis. grid_shape: points per axis (1 to 3 ints, row-major,
+    first axis x); bounds: [[lo, hi], ...] of those axes.
 
     energies: mapping with keys ``ENERGY_KEYS`` ("kinetic_pred", "potential_pred", "kinetic_true",
     "potential_true"), each (T,). pred_fields, true_fields: (T, Nf). snapshot_indices: indices into
@@ -446,9 +507,9 @@ def figure3(
     if missing:
         raise ValueError(f"energies is missing keys {missing}; expected keys {ENERGY_KEYS}")
     e = {k: _check_series(energies[k], f"energies[{k!r}]", T) for k in ENERGY_KEYS}
-    gs = _check_grid_shape(grid_shape)
-    extent = _check_bounds(bounds)
-    nf = gs[0] * gs[1]
+    gs = _check_grid_shape_nd(grid_shape)
+    box = _check_box(bounds, len(gs))
+    nf = int(np.prod(gs))
     pf = _check_fields(pred_fields, "pred_fields", T, nf, "T")
     tf = _check_fields(true_fields, "true_fields", T, nf, "T")
     h = _check_scalar(train_horizon, "train_horizon")
@@ -475,7 +536,16 @@ def figure3(
     top, bottom = fig.subfigures(2, 1, height_ratios=[1.0, 1.9])
     _draw_latent_energy(top, t, qp, qr, e["kinetic_pred"], e["potential_pred"],
                         e["kinetic_true"], e["potential_true"], h)
-    _draw_fields(bottom, gs, extent, t[idx], pf[idx], tf[idx], h, field_label)
+    if len(gs) == 1:
+        _draw_fields_1d(bottom, np.linspace(*box[0], gs[0] + 1)[:-1] + 0.5 * (box[0, 1] - box[0, 0]) / gs[0],
+                        t, pf, tf, idx, h, field_label)
+    else:
+        if len(gs) == 3:  # the middle slice across the third axis (a midpoint grid's cell centres)
+            k = gs[2] // 2
+            z = box[2, 0] + (k + 0.5) * (box[2, 1] - box[2, 0]) / gs[2]
+            pf, tf = (f.reshape(T, *gs)[..., k].reshape(T, -1) for f in (pf, tf))
+            field_label = f"{field_label} (slice z = {z:.3g})"
+        _draw_fields(bottom, gs[:2], tuple(box[:2].reshape(-1)), t[idx], pf[idx], tf[idx], h, field_label)
     if title:
         fig.suptitle(title)
     return fig

@@ -21,6 +21,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from lnf.baselines.latent_mlp import latent_trajectories
 from lnf.config_keys import check_known_keys
+from lnf.model import dropped_settings
 from lnf.training.callbacks import RolloutEvaluationCallback, write_json_atomic
 from lnf.training.checkpoints import AtomicCheckpointIO, resume_checkpoint
 from lnf.training.datamodule import SnapshotDataModule
@@ -138,6 +139,8 @@ def train(cfg: DictConfig) -> dict[str, float]:
     dynamics_spec = _container(cfg.get("dynamics"))
     if dynamics_spec and not str(dynamics_spec.get("_target_", "")).endswith("ReducedDynamics"):
         model_spec["dynamics"] = dynamics_spec
+    dropped = dropped_settings(model_spec)  # each named in a warning
+    model_spec = {k: v for k, v in model_spec.items() if k not in dropped}
     module = LNFModule(scene=scene_spec, model=model_spec, quadrature=_container(cfg.quadrature),
                        optimizer=_container(cfg.optimizer), data=datamodule.describe())
     check_settings(cfg, module)

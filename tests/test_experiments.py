@@ -244,16 +244,20 @@ def test_stability_high_energy_states_per_scene():
     import stability
     from lnf.scenes import LiftedDoublePendulum, LiftedPendulum
 
+    import studylib
+
     study = type("Study", (), {"out": Path("/nonexistent")})()  # inline states write no file
     for scene, size in [(LiftedPendulum(), 2), (LiftedDoublePendulum(), 4)]:
-        cases = stability.HIGH_ENERGY["pendulum" if size == 2 else "double_pendulum"]
+        cases = scene.stability_cases()
         args = stability.initial_state_arguments(study, scene, cases, cases.levels)
         assert list(args.values()) == list(cases.levels)
         for arg, level in args.items():
             state = json.loads(arg)
             expected = [level * np.pi, 0.0] if size == 2 else [level * np.pi, level * np.pi, 0.0, 0.0]
             assert np.allclose(state[0], expected, atol=1e-6) and stability._state_key(state) == arg  # the row finds its level again
-    assert set(stability.HIGH_ENERGY) >= {p.stem for p in (ROOT / "conf" / "experiment").glob("*.yaml")}
+    for path in (ROOT / "conf" / "experiment").glob("*.yaml"):  # every built-in experiment's scene has release cases
+        study = studylib.Study(name="stability", scene=path.stem, mode="smoke", out=Path("/nonexistent"), threads=1)
+        assert stability.stress_cases(study) is not None, path.stem
 
 
 def test_pareto_mask_and_study_choices():

@@ -274,3 +274,26 @@ def test_no_pyplot_import():
             imported.add(node.module or "")
             imported.update(f"{node.module}.{a.name}" for a in node.names)
     assert not any("pyplot" in name for name in imported), imported
+
+
+@pytest.mark.parametrize("grid_shape, bounds", [((32,), [[0.0, 1.0]]), ((6, 5, 4), [[0, 1], [0, 1], [0, 0.5]])],
+                         ids=["1-D body", "3-D body"])
+def test_figure3_draws_bodies_of_one_and_three_dimensions(data, grid_shape, bounds, tmp_path):
+    """A 1-D body gets space–time images and snapshot lines, a 3-D body its middle slice (a 1-D body used to
+    raise 'grid_shape must be a pair')."""
+    n = int(np.prod(grid_shape))
+    rng = np.random.default_rng(0)
+    true = rng.standard_normal((100, n))
+    fig = figure3(data["t"], data["q_pred"], data["q_proj"], data["energies"], grid_shape, bounds,
+                  true + 0.1, true, None, H, title="body")
+    path = save_figure(fig, tmp_path / "f.png")
+    assert path.read_bytes()[:8] == PNG_MAGIC
+    labels = [ax.get_xlabel() for ax in fig.axes]
+    assert "x" in labels
+    if len(grid_shape) == 1:
+        assert any("training horizon" in ax.get_ylabel() for ax in fig.axes)
+    else:
+        assert any("slice z" in (ax.get_ylabel() or "") for ax in fig.axes)
+    wrong = [[0.0, 1.0]] * (len(grid_shape) % 3 + 1)  # bounds of another dimension than the grid's
+    with pytest.raises(ValueError, match="bounds"):
+        figure3(data["t"], data["q_pred"], data["q_proj"], data["energies"], grid_shape, wrong, true, true, None, H)

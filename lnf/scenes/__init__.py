@@ -1,5 +1,5 @@
 """Scenes: bodies with a Lagrangian and a full-order simulator for ground truth."""
-from lnf.scenes.base import DiscretePotential, GeneralizedForce, ModalKinetic, Scene
+from lnf.scenes.base import DiscretePotential, GeneralizedForce, ModalKinetic, Scene, StabilityCases
 from lnf.scenes.bump import BumpPendulum
 from lnf.scenes.double_pendulum import LiftedDoublePendulum
 from lnf.scenes.elastic import ElasticCantilever
@@ -8,5 +8,5 @@ from lnf.scenes.pendulum import LiftedPendulum
 SCENES: dict[str, type[Scene]] = {"pendulum": LiftedPendulum, "double_pendulum": LiftedDoublePendulum,
                                   "bump": BumpPendulum, "elastic": ElasticCantilever}
 
-__all__ = ["DiscretePotential", "GeneralizedForce", "ModalKinetic", "Scene", "LiftedPendulum",
+__all__ = ["DiscretePotential", "GeneralizedForce", "ModalKinetic", "Scene", "StabilityCases", "LiftedPendulum",
            "LiftedDoublePendulum", "BumpPendulum", "ElasticCantilever", "SCENES"]

@@ -18,8 +18,14 @@ import torch
 from torch import Tensor
 
 from lnf.quadrature import Quadrature
-from lnf.scenes.base import DiscretePotential, ModalKinetic, Scene, check_positive, check_range, solve_trajectories
+from lnf.scenes.base import (DiscretePotential, ModalKinetic, Scene, StabilityCases, check_positive, check_range,
+                             solve_trajectories)
 from lnf.scenes.pendulum import legendre_mode
+
+
+# the stability study's high-energy releases (levels θ0 / π; the default theta0_range ends at π/2)
+DOUBLE_PENDULUM_CASES = StabilityCases((0.5, 0.7, 0.85, 0.95, 0.99), "θ1(0) = θ2(0) = θ0, at rest: θ0 / π", 0.5,
+                                       "training range |θ_i| ≤ π/2", unit=np.pi)
 
 
 class DoublePendulumKinetic(ModalKinetic):
@@ -147,6 +153,10 @@ class LiftedDoublePendulum(Scene):
     def released_at_rest(self, amplitude: float) -> np.ndarray:
         """Both links at θ1 = θ2 = amplitude [rad], at rest: (θ1, θ2, ω1, ω2)."""
         return np.array([float(amplitude), float(amplitude), 0.0, 0.0])
+
+    def stability_cases(self) -> StabilityCases:
+        """Both links released at rest at θ0 = π/2 (the edge of the default training range) … 0.99π."""
+        return DOUBLE_PENDULUM_CASES
 
     def simulate(self, initial_states: np.ndarray, times: np.ndarray) -> np.ndarray:
         def rhs(_t: float, y: np.ndarray) -> np.ndarray:

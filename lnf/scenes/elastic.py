@@ -37,10 +37,14 @@ import torch
 from torch import Tensor
 
 from lnf.quadrature import Quadrature
-from lnf.scenes.base import DiscretePotential, GeneralizedForce, Scene, check_positive, check_range
+from lnf.scenes.base import DiscretePotential, GeneralizedForce, Scene, StabilityCases, check_positive, check_range
 from lnf.scenes.fem import StructuredQ1Mesh, lame
 
 log = logging.getLogger("lnf.scenes.elastic")
+
+# the stability study's high-energy releases: tip deflections δ [m] from the default deflection_range's edge
+ELASTIC_CASES = StabilityCases((0.15, 0.2, 0.25, 0.3, 0.4), "tip deflection of the release at rest δ [m]", 0.15,
+                               "training range |δ| ≤ 0.15 m")
 
 
 def svk_torch(G: Tensor, lam: float, mu: float) -> tuple[Tensor, Tensor]:
@@ -108,6 +112,7 @@ class ElasticCantilever(Scene):
     name = "elastic"
     field_dim = 2
     state_names = ("displacement", "velocity", "load")
+    expensive_reference = True  # the ground truth is the Q1 FEM model itself (see Scene.expensive_reference)
 
     def __init__(self, length: float = 1.0, height: float = 0.4, density: float = 1.0, young: float = 200.0,
                  poisson: float = 0.3, gravity: float = 1.0, mesh: Sequence[int] = (40, 16),
@@ -188,6 +193,11 @@ class ElasticCantilever(Scene):
     @property
     def forced(self) -> bool:
         return self.damping > 0 or self.loaded
+
+    @property
+    def is_conservative(self) -> bool:
+        """Without damping and loads the cantilever conserves its energy."""
+        return not self.forced
 
     def generalized_force(self, quadrature: Quadrature) -> Optional[CantileverLoad]:
         if not self.forced:
@@ -298,6 +308,11 @@ class ElasticCantilever(Scene):
         load = np.array([[0.0, float(np.mean(self.load_frequency_range))]])
         return self.pack(self.release_shape(np.array([float(amplitude)])), self.release_velocity(np.array([0.0])),
                          load)[0]
+
+    def stability_cases(self) -> StabilityCases:
+        """Releases at rest, unloaded, from tip deflection 0.15 m (the edge of the default training range) to
+        0.4 m."""
+        return ELASTIC_CASES
 
     def external_force(self, t: float, load: np.ndarray) -> np.ndarray:
         """Nodal actuation forces (n, nn, 2) at time t for load parameters (n, 2) (lumped)."""

@@ -9,7 +9,13 @@ from numpy.polynomial import legendre
 from torch import Tensor
 
 from lnf.quadrature import Quadrature
-from lnf.scenes.base import DiscretePotential, Scene, check_positive, check_range, solve_trajectories
+from lnf.scenes.base import (DiscretePotential, Scene, StabilityCases, check_positive, check_range,
+                             solve_trajectories)
+
+
+# the stability study's high-energy releases (levels θ0 / π; the default theta0_range ends at π/2)
+PENDULUM_CASES = StabilityCases((0.5, 0.7, 0.85, 0.95, 0.99), "θ0 / π (released at rest; 1 = separatrix)", 0.5,
+                                "training range |θ0| ≤ π/2", rotation=(0.0, 7.0), unit=np.pi)
 
 
 def legendre_mode(points: np.ndarray, degrees: Sequence[int]) -> np.ndarray:
@@ -106,6 +112,11 @@ class LiftedPendulum(Scene):
     def released_at_rest(self, amplitude: float) -> np.ndarray:
         """(θ, ω) = (amplitude [rad], 0)."""
         return np.array([float(amplitude), 0.0])
+
+    def stability_cases(self) -> StabilityCases:
+        """Releases at rest from θ0 = π/2 (the edge of the default training range) to 0.99π, and one pendulum
+        rotating above the separatrix, (θ0, θ̇0) = (0, 7 rad/s)."""
+        return PENDULUM_CASES
 
     def simulate(self, initial_states: np.ndarray, times: np.ndarray) -> np.ndarray:
         k = self.gravity / self.length
