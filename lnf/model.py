@@ -32,10 +32,8 @@ from lnf.siren import ModulatedSiren
 log = logging.getLogger("lnf.model")
 
 
-def build(spec: dict[str, Any]) -> Any:
-    """Instantiate ``{"_target_": "pkg.mod.Class", **kwargs}`` without Hydra (for checkpoints)."""
-    spec = dict(spec)
-    target = spec.pop("_target_", None)
+def target_class(target: Any) -> Any:
+    """The class a spec's ``_target_ = "pkg.mod.Class"`` names; a ValueError saying what to fix otherwise."""
     if not target or "." not in str(target):
         raise ValueError(f"spec needs a '_target_' of the form 'module.Class', got {target!r}")
     module, _, name = str(target).rpartition(".")
@@ -46,11 +44,16 @@ def build(spec: dict[str, Any]) -> Any:
                          f"of your own must be importable where it is loaded: run from the folder that holds "
                          f"{module.split('.')[0]!r}, add that folder to PYTHONPATH, or install it") from err
     try:
-        cls = getattr(imported, name)
+        return getattr(imported, name)
     except AttributeError as err:
         raise ValueError(f"module {module!r} ({getattr(imported, '__file__', '?')}) has no {name!r}, which a spec "
                          f"names as {target!r}: was it renamed?") from err
-    return cls(**spec)
+
+
+def build(spec: dict[str, Any]) -> Any:
+    """Instantiate ``{"_target_": "pkg.mod.Class", **kwargs}`` without Hydra (for checkpoints)."""
+    spec = dict(spec)
+    return target_class(spec.pop("_target_", None))(**spec)
 
 
 def build_model(scene: dict[str, Any], model: dict[str, Any], quadrature: dict[str, Any]) -> ReducedModel:
@@ -66,17 +69,16 @@ def build_model(scene: dict[str, Any], model: dict[str, Any], quadrature: dict[s
 def dropped_settings(spec: dict[str, Any]) -> list[str]:
     """Keys of a model spec that its ``_target_`` does not take (each named in a warning), e.g. the neural
     settings of an experiment (``model.width``) when ``model=pod`` is chosen."""
-    target = str(spec.get("_target_"))
-    module, _, name = target.rpartition(".")
     try:
-        params = inspect.signature(getattr(importlib.import_module(module), name)).parameters
-    except (ImportError, AttributeError, ValueError, TypeError):
+        cls = target_class(spec.get("_target_"))
+        params = inspect.signature(cls).parameters
+    except (ValueError, TypeError):
         return []  # build() reports a target that cannot be imported
     if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values()):
         return []
     unknown = sorted(k for k in spec if k != "_target_" and k not in params)
     if unknown:
-        log.warning("%s takes no %s: dropped (an experiment may have set them for another model)", name,
+        log.warning("%s takes no %s: dropped (an experiment may have set them for another model)", cls.__name__,
                     ", ".join(f"model.{k}" for k in unknown))
     return unknown
 

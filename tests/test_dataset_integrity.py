@@ -11,7 +11,7 @@ import subprocess
 import sys
 import textwrap
 from collections import namedtuple
-from dataclasses import replace
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import h5py
@@ -23,33 +23,12 @@ from lnf.dataset import (CHECKSUM_ATTR, FORMAT_VERSION, DatasetConfig, DatasetEr
                          dataset_keys, ensure_dataset, generate_dataset, generation_attributes, load_split)
 from lnf.scenes import LiftedPendulum
 from lnf.training.datamodule import SnapshotDataModule
+from tiny_dataset import CFG, fresh_file, scene, shared_file  # noqa: F401 (fixtures)
 
-CFG = DatasetConfig(n_train=3, n_val=1, n_test=2, n_times=12, dt=0.05, train_times=6, fine_resolution=8,
-                    coarse_resolution=8, observed_fraction=0.25, seed=0)
-GEN = dict(n_train=3, n_val=1, n_test=2, n_times=12, dt=0.05, train_times=6, fine_resolution=8,
-           coarse_resolution=8, observed_fraction=0.25, seed=0)
+GEN = asdict(CFG)  # the same settings as data.* keys of a SnapshotDataModule
 SCENE_SPEC = {"_target_": "lnf.scenes.LiftedPendulum"}
 DiskUsage = namedtuple("DiskUsage", "total used free")
 # the disk tests patch shutil.disk_usage, which lnf.dataset calls as shutil.disk_usage(path.parent)
-
-
-@pytest.fixture(scope="module")
-def scene() -> LiftedPendulum:
-    return LiftedPendulum()
-
-
-@pytest.fixture(scope="module")
-def shared_file(tmp_path_factory, scene) -> Path:
-    """One generated file, never modified."""
-    return generate_dataset(scene, CFG, tmp_path_factory.mktemp("data") / "pendulum.h5")
-
-
-@pytest.fixture
-def fresh_file(tmp_path, shared_file) -> Path:
-    """A private copy of the generated file, for tests that damage it."""
-    dst = tmp_path / "pendulum.h5"
-    dst.write_bytes(shared_file.read_bytes())
-    return dst
 
 
 def temporaries(directory: Path) -> list[str]:
