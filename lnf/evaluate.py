@@ -17,11 +17,11 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from lnf.config_keys import check_known_keys
-from lnf.dataset import SPLITS, DatasetConfig, ensure_dataset, load_split
+from lnf.dataset import SOURCE_ARRAYS, SPLITS, DatasetConfig, ensure_dataset, load_split, stored_generation, verify_dataset
 from lnf.evaluation import evaluate_rollouts, long_horizon_energy
 from lnf.model import build, load
-from lnf.quadrature import midpoint_grid
-from lnf.training.callbacks import save_evaluation_figures, write_json_atomic
+from lnf.quadrature import grid_shape_of, midpoint_grid
+from lnf.training.callbacks import save_evaluation_figures, stored_reference, write_json_atomic
 from lnf.utils import print_summary, run_metadata
 
 log = logging.getLogger("lnf.evaluate")
@@ -32,8 +32,7 @@ def evaluation_points(grid: DictConfig, bounds: list[list[float]], stored: np.nd
     kind = grid.get("kind", "stored")
     dim = len(bounds)
     if kind == "stored":
-        res = int(round(len(stored) ** (1 / dim)))
-        return stored, (res,) * dim
+        return stored, grid_shape_of(stored, bounds)  # None: scattered points (mesh nodes, samples)
     if kind == "uniform":
         res = int(grid.resolution)
         if res < 1:
@@ -173,8 +172,17 @@ def evaluate(cfg: DictConfig) -> dict[str, float]:
     path = Path(data.pop("path"))
     on_mismatch = data.pop("on_mismatch", "regenerate")
     explicit = bool(data.pop("explicit_path", False))  # a shared file of another run's settings is not overwritten
-    dcfg = DatasetConfig.from_mapping(data)
-    ensure_dataset(scene, dcfg, path, on_mismatch=on_mismatch, overwrite_other_settings=not explicit)
+    if data.get("source") == SOURCE_ARRAYS:  # a user's trajectories: verified, never regenerated
+        dcfg = None
+        verify_dataset(path, scene)
+        now, then = stored_generation(path), data.get("generation") or {}
+        changed = sorted(k for k in set(now) | set(then) if now.get(k) != then.get(k))
+        if changed:
+            log.warning("%s was rewritten since the checkpoint was trained on it (%s); evaluating the file as it is now",
+                        path, "; ".join(f"{k}: trained on {then.get(k)!r}, now {now.get(k)!r}" for k in changed))
+    else:
+        dcfg = DatasetConfig.from_mapping(data)
+        ensure_dataset(scene, dcfg, path, on_mismatch=on_mismatch, overwrite_other_settings=not explicit)
     split = load_split(path, cfg.split, scene=scene, cfg=dcfg)
     ensure_code_range(model, path, scene, dcfg)
 
@@ -186,6 +194,18 @@ def evaluate(cfg: DictConfig) -> dict[str, float]:
     train_horizon = float(cfg.train_horizon) if cfg.train_horizon is not None else float(split.times[split.train_times])
     times = dt * np.arange(int(round(horizon / dt)))
     stored_times = len(times) == len(split.times) and np.allclose(times, split.times)
+    has_states = split.states.shape[-1] > 0
+    if (not stored_times or cfg.get("initial_states") is not None) and \
+            not (scene.capabilities()["simulator"] and has_states):
+        asked = ", ".join(f"{k}={cfg.get(k)}" for k in ("dt", "horizon", "initial_states") if cfg.get(k) is not None)
+        lacking = f"{path} holds no full-order states" if not has_states else f"scene {scene.name!r} has no simulate()"
+        raise ValueError(f"{asked}: other times or initial states need a full-order simulator, and {lacking}; "
+                         f"evaluation is limited to the stored times ({len(split.times)} samples at dt = "
+                         f"{split.times[1] - split.times[0]:g} s): leave dt, horizon and initial_states unset")
+    if cfg.grid.kind != "stored" and not (scene.provides("fields") and has_states):
+        lacking = f"{path} holds no full-order states" if not has_states else f"scene {scene.name!r} has no fields()"
+        raise ValueError(f"grid.kind={cfg.grid.kind}: fields on other points need the scene's fields() of full-order "
+                         f"states, and {lacking}; use grid.kind=stored (the points the trajectories were stored on)")
     if cfg.get("initial_states") is not None:
         initial = read_initial_states(cfg.initial_states)
         if initial.ndim != 2 or initial.shape[1] != split.states.shape[-1] or not np.isfinite(initial).all():
@@ -201,20 +221,30 @@ def evaluate(cfg: DictConfig) -> dict[str, float]:
     integrator = OmegaConf.to_container(cfg.integrator, resolve=True)
 
     start = time.perf_counter()
+    own_states = cfg.get("initial_states") is None
+    reference = stored_reference(split, scene, n) if use_stored else {}
+    if own_states and split.controls is not None:
+        reference["controls"] = split.controls[:n]
+    if cfg.grid.kind == "stored" and split.weights is not None:
+        reference["weights"] = split.weights
     result = evaluate_rollouts(model, states, times, points, train_horizon,
                                true_fields=split.fields[:n] if use_stored else None,
                                true_velocities=split.velocities[:n] if use_stored else None,
                                integrator=integrator, quadrature=quadrature, grid_shape=grid_shape,
-                               max_reduction_points=cfg.max_reduction_points, label=f"{cfg.split} rollout")
+                               max_reduction_points=cfg.max_reduction_points, label=f"{cfg.split} rollout", **reference)
     metrics = dict(result.metrics)
     if int(cfg.long_steps) > 0:
-        metrics.update(long_horizon_energy(model, states[: int(cfg.long_trajectories), 0], points, dt,
-                                           int(cfg.long_steps), integrator=integrator, quadrature=quadrature,
-                                           grid_shape=grid_shape, max_reduction_points=cfg.max_reduction_points))
+        k = min(int(cfg.long_trajectories), len(states))
+        stored_start = own_states and cfg.grid.kind == "stored"  # the stored fields at t0 start the check
+        metrics.update(long_horizon_energy(
+            model, states[:k, 0], points, dt, int(cfg.long_steps), integrator=integrator, quadrature=quadrature,
+            grid_shape=grid_shape, max_reduction_points=cfg.max_reduction_points,
+            initial_fields=(split.fields[:k, 0], split.velocities[:k, 0]) if stored_start else None,
+            controls=split.controls[:k] if own_states and split.controls is not None else None))
     metrics["evaluation_seconds"] = time.perf_counter() - start
     write_json_atomic(output_dir / "metrics.json", metrics)
     write_json_atomic(output_dir / "run.json", run_metadata(cfg))
-    if grid_shape is not None and int(cfg.figures) > 0:
+    if int(cfg.figures) > 0:
         try:  # the results are written: a figure that fails (a plotting backend, a full disk) must not cost them
             save_evaluation_figures(result, scene, grid_shape, train_horizon, output_dir / "figures", cfg.split,
                                     int(cfg.figures))

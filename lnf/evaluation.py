@@ -58,6 +58,20 @@ def trajectory_controls(scene, states0: np.ndarray, like: Tensor) -> Optional[Te
     return None if controls is None else torch.as_tensor(controls, dtype=like.dtype, device=like.device)
 
 
+def reference_fields(scene, states: np.ndarray, points: np.ndarray, label: str) -> tuple[np.ndarray, np.ndarray]:
+    """The true fields (…, N, A) of full-order states (…, S) at `points` from ``scene.fields``; where the scene has
+    no fields() or the states are empty (trajectories written from arrays), an error saying to evaluate on the
+    stored points and times."""
+    if np.shape(states)[-1] == 0 or not scene.provides("fields"):
+        why = "the trajectories hold no full-order states" if np.shape(states)[-1] == 0 else \
+            f"scene {scene.name!r} defines no fields()"
+        raise ValueError(f"{label}: the true fields at other points or times need the scene's fields() of "
+                         f"full-order states, and {why}: evaluate trajectories written from arrays on their stored "
+                         f"points and times (lnf.evaluate grid.kind=stored, without dt=, horizon= or "
+                         f"initial_states=)")
+    return scene.fields(states, points)
+
+
 def divergence_steps(diverged_step: "Tensor | np.ndarray", non_finite: Optional[np.ndarray] = None,
                      record_every: int = 1) -> np.ndarray:
     """Per trajectory (n,), the integration step at which it diverged, −1 where it did not.
@@ -117,6 +131,9 @@ def evaluate_rollouts(
     grid_shape: Optional[tuple[int, ...]] = None,
     max_reduction_points: Optional[int] = 1024,
     label: str = "rollout",
+    true_energies: Optional[tuple[np.ndarray, np.ndarray]] = None,
+    controls: Optional[np.ndarray] = None,
+    weights: Optional[np.ndarray] = None,
 ) -> RolloutEvaluation:
     """Roll out every trajectory of full-order `states` (n, T, S) sampled at `times` (T,) [s].
 
@@ -124,6 +141,11 @@ def evaluate_rollouts(
     come from `true_fields`/`true_velocities` (n, T, N, A) when given, else from the scene. Decoding and
     errors use all N points; ρ̃ (initial conditions and the projected reference q̃_ref) uses an evenly
     strided subset of at most `max_reduction_points` of them (see :func:`reduction_subset`).
+
+    Trajectories written from arrays give what a scene would compute from its states: `true_energies` (kinetic,
+    potential) (n, T) each (else ``scene.true_energy_parts(states)``; with neither, the energy errors are left
+    out), `controls` (n, c) (else ``scene.controls``) and the points' quadrature `weights` (N,) that weight the
+    field errors (default: equal weights).
 
     Divergence: `diverged_fraction`, `diverged_count`, `first_divergence_step` and `first_divergence_time` [s]
     (the earliest over the trajectories, −1.0 when none diverged; see :func:`divergence_metrics`); a trajectory
@@ -134,7 +156,7 @@ def evaluate_rollouts(
     scene = model.scene
     p = model.reference_tensor()
     if true_fields is None or true_velocities is None:
-        true_fields, true_velocities = scene.fields(states, points)
+        true_fields, true_velocities = reference_fields(scene, states, points, label)
     n, T = states.shape[:2]
     dt = float(times[1] - times[0])
     pts = torch.as_tensor(points, dtype=p.dtype, device=p.device)
@@ -152,7 +174,8 @@ def evaluate_rollouts(
     table_info = dict(getattr(dynamics, "info", {}))
     counts0 = (getattr(dynamics, "fallback_rows", 0), getattr(dynamics, "evaluated_rows", 0))
     start = time.perf_counter()
-    controls = trajectory_controls(scene, states[:, 0], q0)
+    controls = trajectory_controls(scene, states[:, 0], q0) if controls is None else \
+        torch.as_tensor(np.asarray(controls), dtype=q0.dtype, device=q0.device)
     traj = model.rollout(q0, v0, dt=dt, steps=T - 1, integrator=integ, on_divergence="mark", controls=controls,
                          dynamics=dynamics)
     rollout_seconds = time.perf_counter() - start
@@ -176,9 +199,19 @@ def evaluate_rollouts(
                             torch.where(finite[:, None], traj.v.reshape(n * T, d), 0.0), quadrature)
     kin = torch.where(finite, kin, float("nan")).reshape(n, T).double().cpu().numpy()
     pot = torch.where(finite, pot, float("nan")).reshape(n, T).double().cpu().numpy()
-    kin_true, pot_true = scene.true_energy_parts(states)
+    if true_energies is None and states.shape[-1] > 0 and scene.provides("true_energy_parts"):
+        true_energies = scene.true_energy_parts(states)
+    if true_energies is None:
+        log.info("%s: no reference energies (the trajectories were written without energies or states): the energy "
+                 "errors are left out", label)
+        kin_true = pot_true = np.full((n, T), np.nan)
+    else:
+        kin_true, pot_true = (np.asarray(e, dtype=np.float64) for e in true_energies)
 
-    weights = np.full(points.shape[0], 1.0 / points.shape[0])
+    if weights is None:
+        weights = np.full(points.shape[0], 1.0 / points.shape[0])
+    else:
+        weights = np.asarray(weights, dtype=np.float64) / float(np.sum(weights))
     pred_np = pred.double().cpu().numpy()
     true_np = np.asarray(true_fields, dtype=np.float64)
     metrics: dict[str, float] = {}
@@ -188,7 +221,8 @@ def evaluate_rollouts(
     q_pred_np = traj.q.double().cpu().numpy()
     q_ref_np = q_ref.reshape(n, T, d).double().cpu().numpy()
     metrics.update(M.latent_rmse(q_pred_np, q_ref_np))
-    metrics.update(M.energy_metrics(kin + pot, kin_true + pot_true, scene.energy_scale))
+    if true_energies is not None:
+        metrics.update(M.energy_metrics(kin + pot, kin_true + pot_true, scene.energy_scale))
     vpt = M.valid_prediction_time(pred_np, true_np, weights, times)
     metrics.update({f"vpt/{k}": v for k, v in M.summarize(vpt).items()})
     metrics["vpt/median"] = float(np.median(vpt))
@@ -224,6 +258,8 @@ def long_horizon_energy(
     record_every: int = 10,
     grid_shape: Optional[tuple[int, ...]] = None,
     max_reduction_points: Optional[int] = 1024,
+    initial_fields: Optional[tuple[np.ndarray, np.ndarray]] = None,
+    controls: Optional[np.ndarray] = None,
 ) -> dict[str, float]:
     """energy_drift = max_t |Ẽ(t) − Ẽ(0)| / E_scale over a `steps`-step rollout from full-order states (n, S).
 
@@ -236,15 +272,20 @@ def long_horizon_energy(
     p = model.reference_tensor()
     if model.state_is_field:
         max_reduction_points = None
-    points = np.asarray(points)[reduction_subset(len(points), grid_shape, max_reduction_points)]
-    q_true, v_true = scene.fields(states0[:, None], points)
+    sub = reduction_subset(len(points), grid_shape, max_reduction_points)
+    points = np.asarray(points)[sub]
+    if initial_fields is None:
+        q_true, v_true = (a[:, 0] for a in reference_fields(scene, states0[:, None], points, "long-horizon check"))
+    else:  # the stored fields at t0 (n, N, A) on all points
+        q_true, v_true = (np.asarray(a)[:, sub] for a in initial_fields)
     pts = torch.as_tensor(points, dtype=p.dtype, device=p.device)
-    q0 = model.reduce(pts, torch.as_tensor(q_true[:, 0], dtype=p.dtype, device=p.device))
-    v0 = model.project_velocity(q0, pts, torch.as_tensor(v_true[:, 0], dtype=p.dtype, device=p.device))
+    q0 = model.reduce(pts, torch.as_tensor(q_true, dtype=p.dtype, device=p.device))
+    v0 = model.project_velocity(q0, pts, torch.as_tensor(v_true, dtype=p.dtype, device=p.device))
     start = time.perf_counter()
     traj = model.rollout(q0, v0, dt=dt, steps=steps, integrator=integrator, quadrature=quadrature,
                          record_every=record_every, on_divergence="mark",
-                         controls=trajectory_controls(scene, states0, q0))
+                         controls=trajectory_controls(scene, states0, q0) if controls is None else
+                         torch.as_tensor(np.asarray(controls), dtype=q0.dtype, device=q0.device))
     seconds = time.perf_counter() - start
     kin, pot = model.energy(torch.nan_to_num(traj.q), torch.nan_to_num(traj.v), quadrature)
     energy = (kin + pot).double().cpu().numpy()

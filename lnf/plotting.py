@@ -11,12 +11,14 @@ Public API
   vs true, training horizon marked (Figure 3, top row).
 - :func:`field_snapshots_figure` -- predicted field, true field and absolute error at a few
   times before/after the training horizon (Figure 3, bottom).
-- :func:`figure3` -- both of the above in one figure.
+- :func:`figure3` -- both of the above in one figure, for a 1-, 2- or 3-D body, its fields given on a
+  midpoint grid (``grid_shape``) or on scattered points (``points``: mesh nodes, random samples).
 - :func:`default_snapshot_indices` -- evenly spaced sample indices on each side of the horizon.
 - :func:`save_figure` -- atomic PNG write.
 
 Non-finite values in predictions (a diverged rollout) are plotted, not hidden and not fatal:
-lines get gaps, images show masked pixels in grey, colour limits use the finite values only.
+lines get gaps, images show masked pixels (or triangles touching a non-finite point) in grey, colour
+limits use the finite values only.
 """
 
 from __future__ import annotations
@@ -126,11 +128,11 @@ def _check_grid_shape_nd(grid_shape) -> tuple[int, ...]:
     return gs
 
 
-def _check_box(bounds, dim: int) -> np.ndarray:
+def _check_box(bounds, dim: int, of: str = "the grid") -> np.ndarray:
     """[[lo, hi], ...] of a `dim`-dimensional body as a (dim, 2) array with lo < hi."""
     arr = _as_float_array(bounds, "bounds").reshape(-1)
     if arr.shape != (2 * dim,) or not np.all(np.isfinite(arr)) or not np.all(arr[1::2] > arr[0::2]):
-        raise ValueError(f"bounds must be [[lo, hi], ...] with lo < hi for each of the {dim} axes of the grid, "
+        raise ValueError(f"bounds must be [[lo, hi], ...] with lo < hi for each of the {dim} axes of {of}, "
                          f"got {np.asarray(bounds).tolist()}")
     return arr.reshape(dim, 2)
 
@@ -149,12 +151,25 @@ def _check_bounds(bounds) -> tuple[float, float, float, float]:
     return xmin, xmax, ymin, ymax
 
 
-def _check_fields(x, name: str, S: int, nf: int, s_label: str) -> np.ndarray:
+def _check_fields(x, name: str, S: int, nf: int, s_label: str, nf_label: str = "Nf = prod(grid_shape)") -> np.ndarray:
     arr = _as_float_array(x, name)
     if arr.shape != (S, nf):
+        n_sym = nf_label.split(" ", 1)[0]
         raise ValueError(
-            f"{name} must have shape ({s_label}, Nf) = ({S}, {nf}) with Nf = prod(grid_shape), got {arr.shape}"
+            f"{name} must have shape ({s_label}, {n_sym}) = ({S}, {nf}) with {nf_label}, got {arr.shape}"
         )
+    return arr
+
+
+def _check_points(points) -> np.ndarray:
+    """(N, dim_B) evaluation points with 1 <= dim_B <= 3 and N >= 1, all finite; (N,) means dim_B = 1."""
+    arr = _as_float_array(points, "points")
+    if arr.ndim == 1:
+        arr = arr[:, None]
+    if arr.ndim != 2 or arr.shape[0] < 1 or not 1 <= arr.shape[1] <= 3:
+        raise ValueError(f"points must have shape (N, dim_B) with N >= 1 and dim_B in 1..3, got {np.shape(points)}")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError("points must be finite")
     return arr
 
 
@@ -341,10 +356,134 @@ def _draw_fields(
     return axes
 
 
+def _triangulate(xy: np.ndarray, what: str):
+    """Delaunay triangulation of (N, 2) points, or a ValueError saying why there is none."""
+    from matplotlib.tri import Triangulation
+
+    if xy.shape[0] < 3:
+        raise ValueError(f"{what}: need at least 3 points to triangulate, got {xy.shape[0]}")
+    try:
+        tri = Triangulation(xy[:, 0], xy[:, 1])
+    except (ValueError, RuntimeError) as exc:
+        raise ValueError(f"{what}: the {xy.shape[0]} points cannot be triangulated "
+                         f"(all on one line, or too few distinct points): {exc}") from exc
+    if tri.triangles.shape[0] == 0:
+        raise ValueError(f"{what}: the {xy.shape[0]} points cannot be triangulated (all on one line)")
+    return tri
+
+
+def _draw_fields_scattered(
+    fig: Figure | SubFigure,
+    xy: np.ndarray,
+    box: np.ndarray,
+    times_shown: np.ndarray,
+    pred: np.ndarray,
+    true: np.ndarray,
+    h: float,
+    field_label: str = "field q",
+    what: str = "points",
+):
+    """As :func:`_draw_fields` for fields on scattered points ``xy`` (N, 2): the same 3 × S panels (predicted,
+    true, |pred − true|) drawn with ``tripcolor`` on the points' Delaunay triangulation, one colour per
+    triangle (the mean of its vertices). A triangle touching a non-finite vertex is masked: drawn grey, and
+    the panel notes the share of non-finite points. ``box`` (2, 2): the axis limits."""
+    import matplotlib as mpl
+
+    tri = _triangulate(xy, what)
+    S = pred.shape[0]
+    pred = np.where(np.isfinite(pred), pred, np.nan)
+    true = np.where(np.isfinite(true), true, np.nan)
+    err = np.abs(pred - true)  # NaN where pred or true is non-finite
+    vmax = _finite_absmax(pred, true)
+    emax = _finite_absmax(err)
+
+    cmap_f = mpl.colormaps[_FIELD_CMAP].with_extremes(bad=_MASK_COLOR)
+    cmap_e = mpl.colormaps[_ERROR_CMAP].with_extremes(bad=_MASK_COLOR)
+
+    axes = np.asarray(fig.subplots(3, S, sharex=True, sharey=True, squeeze=False))
+    row_names = ("predicted", "true", "|pred − true|")
+    im_f = im_e = None
+    for s in range(S):
+        vals = (pred[s], true[s], err[s])
+        for r in range(3):
+            ax = axes[r, s]
+            v = vals[r]
+            # per-triangle colour; NaN (a masked triangle, drawn in the colour map's grey "bad" colour)
+            # wherever a vertex is non-finite
+            face = v[tri.triangles].mean(axis=1)
+            if r < 2:
+                im = ax.tripcolor(tri, facecolors=face, cmap=cmap_f, vmin=-vmax, vmax=vmax, shading="flat")
+                im_f = im
+            else:
+                im = ax.tripcolor(tri, facecolors=face, cmap=cmap_e, vmin=0.0, vmax=emax, shading="flat")
+                im_e = im
+            n_bad = int(np.count_nonzero(~np.isfinite(v)))
+            if n_bad:
+                ax.text(0.5, 0.5, f"non-finite\n{100.0 * n_bad / v.size:.0f}% (grey)",
+                        transform=ax.transAxes, ha="center", va="center", fontsize="x-small",
+                        bbox=dict(boxstyle="round", facecolor="white", alpha=0.8, linewidth=0))
+            ax.set_xlim(box[0, 0], box[0, 1])
+            ax.set_ylim(box[1, 0], box[1, 1])
+            ax.set_aspect("equal")
+            ax.tick_params(labelsize="x-small")
+            if s == 0:
+                ax.set_ylabel(f"{row_names[r]}\ny", fontsize="small")
+            if r == 2:
+                ax.set_xlabel("x", fontsize="small")
+        t = float(times_shown[s])
+        where = "before horizon" if t < h else "after horizon"
+        axes[0, s].set_title(f"t = {_format_t(t)} s\n({where})", fontsize="small")
+
+    fig.colorbar(im_f, ax=axes[:2, :].ravel().tolist(), label=field_label, shrink=0.9)
+    fig.colorbar(im_e, ax=axes[2, :].ravel().tolist(), label="absolute error", shrink=0.9)
+    return axes
+
+
+def _middle_slab(pts: np.ndarray, zlim: np.ndarray) -> tuple[np.ndarray, float, float]:
+    """Indices (sorted) of the points in the slab around the middle of the third axis: those within 1/16 of the
+    z range of the middle (a slab 1/8 of the range thick), and never fewer than the nearest ⌈N/8⌉ (at least 3)
+    points, ties included. Returns (indices, z middle, half thickness actually used)."""
+    n = pts.shape[0]
+    if n < 3:
+        raise ValueError(f"points: a 3-D body needs at least 3 points for its middle slab, got {n}")
+    z_mid = 0.5 * float(zlim[0] + zlim[1])
+    half = (float(zlim[1]) - float(zlim[0])) / 16.0
+    dz = np.abs(pts[:, 2] - z_mid)
+    order = np.argsort(dz, kind="stable")
+    k = max(int(np.count_nonzero(dz <= half)), min(n, max(3, -(-n // 8))))
+    # points as near as the k-th come too (a layered mesh gives whole layers, never a part of one)
+    tol = 1e-9 * (float(zlim[1]) - float(zlim[0]))
+    sel = np.flatnonzero(dz <= dz[order[k - 1]] + tol)
+    return sel, z_mid, max(half, float(dz[sel].max()))
+
+
+def _cell_edges(c: np.ndarray, lo: float | None = None, hi: float | None = None) -> np.ndarray:
+    """Cell edges of sorted (non-decreasing) centres ``c``: midpoints between neighbours, the outer edges half
+    a neighbour gap beyond the end centres, pulled in to ``lo`` / ``hi`` where the end centre lies inside them
+    (a midpoint grid gets back exactly its box). One centre gets [lo, hi], or c ± ½ without them."""
+    c = np.asarray(c, dtype=float)
+    if c.shape[0] == 1:
+        a = lo if lo is not None and lo < c[0] else c[0] - 0.5
+        b = hi if hi is not None and hi > c[0] else c[0] + 0.5
+        return np.array([a, b])
+    mid = 0.5 * (c[1:] + c[:-1])
+    first = c[0] - 0.5 * (c[1] - c[0])
+    last = c[-1] + 0.5 * (c[-1] - c[-2])
+    if lo is not None and c[0] >= lo:
+        first = max(first, lo)
+    if hi is not None and c[-1] <= hi:
+        last = min(last, hi)
+    return np.concatenate([[first], mid, [last]])
+
+
 def _draw_fields_1d(fig: Figure | SubFigure, x: np.ndarray, t: np.ndarray, pred: np.ndarray, true: np.ndarray,
-                    idx: list[int], h: float, field_label: str = "field q"):
+                    idx: list[int], h: float, field_label: str = "field q", x_edges: np.ndarray | None = None):
     """A 1-D body: space–time images of predicted, true and |pred − true| (x across, t up, the training
-    horizon dashed), and below them the fields at the snapshot times, predicted solid, true dotted."""
+    horizon dashed), and below them the fields at the snapshot times, predicted solid, true dotted.
+
+    x: the (sorted) points. Without ``x_edges`` x is a uniform midpoint grid drawn with imshow; with them
+    (len(x) + 1 cell edges, possibly non-uniform) the images are a pcolormesh over those x cells and time cells
+    between neighbouring samples, so non-uniform spacing is drawn as it is."""
     import matplotlib as mpl
 
     err = np.abs(pred - true)
@@ -353,11 +492,20 @@ def _draw_fields_1d(fig: Figure | SubFigure, x: np.ndarray, t: np.ndarray, pred:
     axes = np.asarray(top.subplots(1, 3, sharex=True, sharey=True, squeeze=False))[0]
     dx = float(x[1] - x[0]) if len(x) > 1 else 1.0
     extent = (float(x[0] - dx / 2), float(x[-1] + dx / 2), float(t[0]), float(t[-1]))
+    if x_edges is not None:
+        t_edges = _cell_edges(t, float(t[0]), float(t[-1]))
     for ax, img, name, cmap, lo, hi in ((axes[0], pred, "predicted", _FIELD_CMAP, -vmax, vmax),
                                         (axes[1], true, "true", _FIELD_CMAP, -vmax, vmax),
                                         (axes[2], err, "|pred − true|", _ERROR_CMAP, 0.0, emax)):
-        im = ax.imshow(np.ma.masked_invalid(img), origin="lower", extent=extent, aspect="auto", vmin=lo, vmax=hi,
-                       cmap=mpl.colormaps[cmap].with_extremes(bad=_MASK_COLOR), interpolation="nearest")
+        cm = mpl.colormaps[cmap].with_extremes(bad=_MASK_COLOR)
+        if x_edges is None:
+            im = ax.imshow(np.ma.masked_invalid(img), origin="lower", extent=extent, aspect="auto", vmin=lo,
+                           vmax=hi, cmap=cm, interpolation="nearest")
+        else:
+            im = ax.pcolormesh(x_edges, t_edges, np.ma.masked_invalid(img), shading="flat", vmin=lo, vmax=hi,
+                               cmap=cm)
+            ax.set_xlim(x_edges[0], x_edges[-1])
+            ax.set_ylim(t_edges[0], t_edges[-1])
         ax.axhline(h, color="k", ls="--", lw=0.8)
         ax.set_title(name, fontsize="small")
         ax.set_xlabel("x", fontsize="small")
@@ -374,6 +522,25 @@ def _draw_fields_1d(fig: Figure | SubFigure, x: np.ndarray, t: np.ndarray, pred:
     ax.set_ylabel(f"{field_label}\n(solid: predicted, dotted: true)", fontsize="small")
     ax.legend(fontsize="x-small", ncols=2)
     return axes
+
+
+def _draw_scattered_body(fig: Figure | SubFigure, pts: np.ndarray, box: np.ndarray, t: np.ndarray,
+                         pf: np.ndarray, tf: np.ndarray, idx: list[int], h: float, field_label: str) -> None:
+    """The field panels of :func:`figure3` for fields (T, N) on scattered points (N, dim_B)."""
+    dim = pts.shape[1]
+    if dim == 1:
+        order = np.argsort(pts[:, 0], kind="stable")
+        x = pts[order, 0]
+        _draw_fields_1d(fig, x, t, pf[:, order], tf[:, order], idx, h, field_label,
+                        x_edges=_cell_edges(x, float(box[0, 0]), float(box[0, 1])))
+        return
+    what = "points"
+    if dim == 3:
+        sel, z_mid, half = _middle_slab(pts, box[2])
+        pts, pf, tf = pts[sel], pf[:, sel], tf[:, sel]
+        field_label = f"{field_label} (slab z ≈ {z_mid:.3g} ± {half:.2g}, {sel.shape[0]} points)"
+        what = f"points of the slab z ≈ {z_mid:.3g} ± {half:.2g}"
+    _draw_fields_scattered(fig, pts[:, :2], box[:2], t[idx], pf[idx], tf[idx], h, field_label, what)
 
 
 # --------------------------------------------------------------------------------------
@@ -485,17 +652,31 @@ def figure3(
     train_horizon: float,
     title: str = "",
     field_label: str = "field q",
+    *,
+    points=None,
 ) -> Figure:
     """The paper's Figure 3 in one figure: top row latent and energies, below the fields.
 
-    The fields are drawn by the body's dimension: a 1-D body as space–time images (predicted, true, error)
-    and line plots at the snapshot times, a 2-D body as images at the snapshot times, a 3-D body as the
-    images of its middle slice across the third axis. grid_shape: points per axis (1 to 3 ints, row-major,
-    first axis x); bounds: [[lo, hi], ...] of those axes.
+    The fields are given either on a grid or on scattered points:
+
+    - ``grid_shape``: points per axis (1 to 3 ints, row-major, first axis x) of a midpoint grid on the box
+      ``bounds`` ([[lo, hi], ...] of those axes); pred_fields, true_fields: (T, Nf) with Nf = prod(grid_shape).
+      A 1-D body is drawn as space–time images (predicted, true, error) and line plots at the snapshot times,
+      a 2-D body as images at the snapshot times, a 3-D body as the images of its middle slice across the
+      third axis.
+    - ``grid_shape=None`` and ``points`` (N, dim_B) (mesh nodes, random samples, in any order): pred_fields,
+      true_fields: (T, N) on those points; bounds: [[lo, hi], ...] of the dim_B axes. A 1-D body is drawn as
+      above with the points sorted by x, each one's cell reaching halfway to its neighbours (non-uniform
+      spacing shown as it is); a 2-D body as the same panels drawn on the points' Delaunay triangulation
+      (triangles touching a non-finite value grey), the box as axis limits; a 3-D body as the 2-D drawing of
+      the points in a slab around the middle of the third axis (1/8 of its range thick, widened to the
+      nearest ⌈N/8⌉ points if it holds fewer; at least 3 points needed).
+
+    When both are given, ``grid_shape`` is used and ``points`` is ignored.
 
     energies: mapping with keys ``ENERGY_KEYS`` ("kinetic_pred", "potential_pred", "kinetic_true",
-    "potential_true"), each (T,). pred_fields, true_fields: (T, Nf). snapshot_indices: indices into
-    the T samples (None -> :func:`default_snapshot_indices`).
+    "potential_true"), each (T,). snapshot_indices: indices into the T samples
+    (None -> :func:`default_snapshot_indices`).
     """
     t = _check_times(times)
     T = t.shape[0]
@@ -507,11 +688,23 @@ def figure3(
     if missing:
         raise ValueError(f"energies is missing keys {missing}; expected keys {ENERGY_KEYS}")
     e = {k: _check_series(energies[k], f"energies[{k!r}]", T) for k in ENERGY_KEYS}
-    gs = _check_grid_shape_nd(grid_shape)
-    box = _check_box(bounds, len(gs))
-    nf = int(np.prod(gs))
-    pf = _check_fields(pred_fields, "pred_fields", T, nf, "T")
-    tf = _check_fields(true_fields, "true_fields", T, nf, "T")
+    if grid_shape is not None:
+        gs = _check_grid_shape_nd(grid_shape)
+        pts = None
+        dim = len(gs)
+        box = _check_box(bounds, dim)
+        nf, nf_label = int(np.prod(gs)), "Nf = prod(grid_shape)"
+    elif points is None:
+        raise ValueError("figure3 needs grid_shape (points per axis of a grid) or points (an (N, dim_B) array "
+                         "of the evaluation points); both are None")
+    else:
+        pts = _check_points(points)
+        gs = None
+        dim = pts.shape[1]
+        box = _check_box(bounds, dim, f"the points (shape {pts.shape})")
+        nf, nf_label = pts.shape[0], "N = len(points)"
+    pf = _check_fields(pred_fields, "pred_fields", T, nf, "T", nf_label)
+    tf = _check_fields(true_fields, "true_fields", T, nf, "T", nf_label)
     h = _check_scalar(train_horizon, "train_horizon")
 
     if snapshot_indices is None:
@@ -536,7 +729,9 @@ def figure3(
     top, bottom = fig.subfigures(2, 1, height_ratios=[1.0, 1.9])
     _draw_latent_energy(top, t, qp, qr, e["kinetic_pred"], e["potential_pred"],
                         e["kinetic_true"], e["potential_true"], h)
-    if len(gs) == 1:
+    if pts is not None:
+        _draw_scattered_body(bottom, pts, box, t, pf, tf, idx, h, field_label)
+    elif len(gs) == 1:
         _draw_fields_1d(bottom, np.linspace(*box[0], gs[0] + 1)[:-1] + 0.5 * (box[0, 1] - box[0, 0]) / gs[0],
                         t, pf, tf, idx, h, field_label)
     else:

@@ -76,6 +76,21 @@ def uniform_grid(resolution: int | Sequence[int], bounds: Bounds) -> Quadrature:
     return _tensor_product(nodes, weights)
 
 
+def grid_shape_of(points: "np.ndarray | Tensor", bounds: Bounds) -> tuple[int, ...] | None:
+    """(res,)·dim_B when `points` (N, dim_B) are the row-major midpoint grid of `bounds` with res cells per axis
+    (how generated datasets store their grids), else None: scattered points (mesh nodes, samples)."""
+    pts = np.asarray(points, dtype=np.float64)
+    b = _check_bounds(bounds)
+    if pts.ndim != 2 or pts.shape[1] != len(b) or len(pts) == 0:
+        return None
+    res = int(round(len(pts) ** (1.0 / len(b))))
+    if res ** len(b) != len(pts):
+        return None
+    grid = uniform_grid(res, bounds).points.numpy()
+    tol = 1e-5 * float(np.max(b[:, 1] - b[:, 0]))
+    return (res,) * len(b) if np.allclose(pts, grid, rtol=0, atol=tol) else None
+
+
 def gauss_legendre_rule(order: int | Sequence[int], bounds: Bounds) -> Quadrature:
     """Tensor Gauss–Legendre rule, `order` nodes per axis: exact for degree ≤ 2·order − 1 per axis."""
     b = _check_bounds(bounds)
@@ -138,3 +153,36 @@ class GivenPoints(QuadratureRule):
 
     def describe(self) -> str:
         return f"given_points(n={len(self.weights)})"
+
+
+class StoredPoints(QuadratureRule):
+    """The points and quadrature weights stored with trajectories written from arrays (``/grids/fine`` and
+    ``/grids/weights`` of the file at `path`, see :func:`lnf.trajectories.write_dataset`): the reduced dynamics
+    integrate over the user's own mesh nodes, whatever the body's shape inside its box."""
+
+    def __init__(self, path: str | None = None) -> None:
+        self.path = str(path) if path else None
+
+    def build(self, bounds: Bounds) -> Quadrature:
+        import h5py
+
+        if self.path is None:
+            raise ValueError("quadrature=stored reads the points and weights of the data file: set data.path=<file> "
+                             "(trajectories written by lnf.trajectories.write_dataset with weights=)")
+        b = _check_bounds(bounds)
+        try:
+            with h5py.File(self.path, "r") as f:
+                if "grids/weights" not in f:
+                    raise ValueError(f"quadrature=stored: {self.path} holds no quadrature weights (/grids/weights); "
+                                     f"write the trajectories with weights= (e.g. lumped nodal volumes, "
+                                     f"lnf.mesh_io.read_mesh_series gives them) or choose quadrature=gauss_legendre")
+                points, weights = f["grids/fine"][...], f["grids/weights"][...]
+        except OSError as exc:
+            raise ValueError(f"quadrature=stored: cannot read {self.path} ({exc})") from exc
+        if points.shape[1] != len(b):
+            raise ValueError(f"quadrature=stored: the points of {self.path} have dim {points.shape[1]}, the body has "
+                             f"dim {len(b)}")
+        return Quadrature(torch.as_tensor(points, dtype=torch.float64), torch.as_tensor(weights, dtype=torch.float64))
+
+    def describe(self) -> str:
+        return f"stored_points(path={self.path})"

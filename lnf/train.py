@@ -37,7 +37,7 @@ def fit_latent_dynamics(model: Any, datamodule: SnapshotDataModule) -> dict[str,
     model.eval()
     q, v = latent_trajectories(model, points, values, velocities)
     with torch.enable_grad():
-        info = model.latent_dynamics.fit(q, v, datamodule.config.dt)
+        info = model.latent_dynamics.fit(q, v, datamodule.dt)
     log.info("latent dynamics fitted in %.1f s (loss %.3e)", info["latent_fit_seconds"], info["latent_fit_loss"])
     return info
 

@@ -19,7 +19,16 @@ def _options(group):
 
 @pytest.mark.parametrize("group,option", [(g, o) for g in GROUPS for o in _options(g)])
 def test_every_option_composes_and_instantiates(group, option, tmp_path):
-    cfg = compose_config("train", ["+experiment=pendulum", f"{group}={option}"], tmp_path)
+    extra = []
+    if (group, option) == ("quadrature", "stored"):  # the points and weights of trajectories written from arrays
+        import numpy as np
+
+        from lnf.trajectories import Trajectories, write_dataset
+
+        part = Trajectories(points=np.random.default_rng(0).uniform(-1, 1, (20, 2)), times=0.1 * np.arange(3),
+                            fields=np.zeros((1, 3, 20)), weights=np.full(20, 0.2))
+        extra = [f"data.path={write_dataset(tmp_path / 'mine.h5', part, part, part)}"]
+    cfg = compose_config("train", ["+experiment=pendulum", f"{group}={option}", *extra], tmp_path)
     node = cfg[group]
     plain = OmegaConf.to_container(node, resolve=True)
     if group == "model":

@@ -6,6 +6,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from helpers import ROOT, TINY
@@ -62,3 +63,28 @@ def test_the_vibrating_string_trains_evaluates_draws_and_loads_from_its_own_conf
     metrics = evaluate(compose_config("evaluate", [f"ckpt_path={ckpt}", "grid.kind=random", "grid.n_points=50",
                                                    "figures=0"], tmp_path / "eval"))
     assert "field_rel_l2/all/median" in metrics and metrics["diverged_count"] >= 0
+
+
+def test_precomputed_trajectories_from_arrays_train_with_a_scene_that_has_only_its_lagrangian(tmp_path):
+    """The second example: a foreign simulator's arrays (a lumped-mass FEM string on a graded mesh) written with
+    lnf.trajectories.write_dataset train a scene without simulate() or fields(), integrated on the mesh's own
+    nodes (quadrature=stored); the file's settings are used, not data.*."""
+    from helpers import compose_config
+    from lnf.train import train
+
+    sys.path.insert(0, str(EXAMPLES))
+    import string_from_arrays
+
+    caps = string_from_arrays.StringLagrangian().capabilities()
+    assert not caps["simulator"] and not caps["fields"] and not caps["true_energies"]
+    path = string_from_arrays.main([str(tmp_path / "string.h5"), "--trajectories", "3", "1", "2", "--times", "16",
+                                    "--nodes", "17"])
+    cfg = compose_config("train", ["+experiment=string_from_arrays", "hydra.searchpath=[file://" + str(EXAMPLES / "conf") + "]",
+                                   f"data.path={path}", "trainer=smoke", "trainer.max_epochs=1", "logger=csv",
+                                   "threads=1", "model.width=16", "model.hyper_width=8", "evaluation.long_steps=10",
+                                   "evaluation.long_trajectories=1", "evaluation.every_n_epochs=1",
+                                   "evaluation.val_trajectories=1", "evaluation.figures=1"], tmp_path)
+    metrics = train(cfg)
+    assert metrics["evaluation_points"] == 17 and metrics["frames"] == 16 and metrics["epochs_run"] == 1
+    assert "energy_rel_err/max" in metrics  # the stored energies are the reference (absent without them)
+    assert (tmp_path / "out" / "figures" / "test_trajectory0.png").stat().st_size > 0

@@ -297,3 +297,116 @@ def test_figure3_draws_bodies_of_one_and_three_dimensions(data, grid_shape, boun
     wrong = [[0.0, 1.0]] * (len(grid_shape) % 3 + 1)  # bounds of another dimension than the grid's
     with pytest.raises(ValueError, match="bounds"):
         figure3(data["t"], data["q_pred"], data["q_proj"], data["energies"], grid_shape, wrong, true, true, None, H)
+
+
+# --------------------------------------------------------------------------------------
+# fields on scattered points (grid_shape=None, points=...)
+# --------------------------------------------------------------------------------------
+
+
+def _figure3_on_points(data, points, bounds, pred, true, idx, **kw):
+    return figure3(data["t"], data["q_pred"], data["q_proj"], data["energies"], None, bounds, pred, true,
+                   idx, H, points=points, **kw)
+
+
+def _colorbar_labels(fig):
+    return [ax.get_ylabel() for ax in fig.axes if ax.get_label() == "<colorbar>"]
+
+
+def test_figure3_scattered_1d_points_unsorted_non_uniform(data, tmp_path):
+    """Unsorted, non-uniformly spaced points of a 1-D body: drawn sorted by x, each cell reaching halfway to
+    its neighbours (the outer cells clipped to the box), the line plots through the sorted points."""
+    x = np.array([0.9, 0.05, 0.5, 0.1, 0.2, 0.97, 0.0, 0.7])  # unsorted, clustered near 0
+    xs = np.sort(x)
+    true = data["q_proj"] * np.sin(3 * x)[None, :]
+    pred = true + 0.1 * x[None, :]
+    fig = _figure3_on_points(data, x[:, None], [[0.0, 1.0]], pred, true, [12, 62], title="1-D points")
+    path = save_figure(fig, tmp_path / "scattered_1d.png")
+    _assert_png(path, min_bytes=20_000)
+    # latent + energy, 3 space–time panels + their 3 colour bars, 1 line-plot panel
+    assert len(fig.axes) == 9
+    assert _colorbar_labels(fig) == ["field q", "field q", "absolute error"]
+    mesh = fig.axes[2].collections[0]  # the "predicted" space–time panel
+    assert fig.axes[2].get_title() == "predicted"
+    coords = mesh.get_coordinates()  # (T + 1, N + 1, 2) cell corners
+    edges = np.concatenate([[0.0], 0.5 * (xs[1:] + xs[:-1]), [1.0]])  # x = 0 is a point: its cell starts there
+    np.testing.assert_allclose(coords[0, :, 0], edges)
+    assert coords[0, 0, 1] == data["t"][0] and coords[-1, 0, 1] == data["t"][-1]
+    np.testing.assert_allclose(np.asarray(mesh.get_array()).reshape(100, 8), pred[:, np.argsort(x)])
+    line_ax = fig.axes[-1]
+    assert "solid: predicted" in line_ax.get_ylabel()
+    np.testing.assert_array_equal(line_ax.lines[0].get_xdata(), xs)
+    np.testing.assert_allclose(line_ax.lines[0].get_ydata(), pred[12, np.argsort(x)])
+
+
+def test_figure3_scattered_2d_random_points_with_nan_block(data, tmp_path):
+    """Random points of a 2-D body, the prediction NaN on a block after the horizon: tripcolor panels, grey
+    (NaN) triangles exactly where a vertex is non-finite, the share noted, the box as axis limits."""
+    rng = np.random.default_rng(3)
+    pts = rng.uniform([-1.0, 0.0], [1.0, 2.0], size=(200, 2))
+    u = np.sin(np.pi * pts[:, 0]) * np.cos(pts[:, 1])
+    true = data["q_proj"] * u[None, :]
+    pred = 1.05 * true
+    block = (pts[:, 0] > 0.3) & (pts[:, 1] > 1.0)
+    pred[60:, block] = np.nan
+    fig = _figure3_on_points(data, pts, [[-1.0, 1.0], [0.0, 2.0]], pred, true, [12, 87],
+                             field_label="field q₃")
+    _assert_png(save_figure(fig, tmp_path / "scattered_2d.png"), min_bytes=20_000)
+    assert len(fig.axes) == 2 + 3 * 2 + 2  # latent + energy, 3 rows × 2 snapshots, 2 colour bars
+    assert _colorbar_labels(fig) == ["field q₃", "absolute error"]
+    panels = [ax for ax in fig.axes[2:] if ax.get_label() != "<colorbar>"]
+    for ax in panels:
+        assert ax.get_xlim() == (-1.0, 1.0) and ax.get_ylim() == (0.0, 2.0)
+        assert ax.get_aspect() == 1.0
+    # panels are laid out row-major: [pred t12, pred t87, true t12, true t87, err t12, err t87]
+    tri_col = panels[1].collections[0]
+    faces = np.asarray(tri_col.get_array(), dtype=float)
+    assert faces.ndim == 1 and faces.size > 200  # one colour per triangle of ~2N triangles
+    assert np.isnan(faces).any() and np.isfinite(faces).any()
+    assert not np.isnan(np.asarray(panels[0].collections[0].get_array(), dtype=float)).any()  # before: all finite
+    texts = {i: [t.get_text() for t in ax.texts] for i, ax in enumerate(panels)}
+    share = f"{100.0 * block.sum() / block.size:.0f}%"
+    assert texts[0] == [] and texts[2] == [] and texts[3] == []  # true fields and the early prediction
+    assert texts[1] == [f"non-finite\n{share} (grey)"] and texts[5] == [f"non-finite\n{share} (grey)"]
+    titles = [ax.get_title() for ax in panels[:2]]
+    assert "before horizon" in titles[0] and "after horizon" in titles[1]
+
+
+def test_figure3_scattered_3d_random_points_middle_slab(data, tmp_path):
+    """Random points of a 3-D body: the points of a slab around the middle of z, drawn as a 2-D body and
+    labelled with the slab; too few points is a clear error."""
+    rng = np.random.default_rng(4)
+    pts = rng.uniform([0.0, 0.0, -0.5], [2.0, 1.0, 0.5], size=(400, 3))
+    true = data["q_proj"] * (pts[:, 0] * pts[:, 1] + pts[:, 2])[None, :]
+    fig = _figure3_on_points(data, pts, [[0, 2], [0, 1], [-0.5, 0.5]], true + 0.1, true, [12, 87])
+    _assert_png(save_figure(fig, tmp_path / "scattered_3d.png"), min_bytes=20_000)
+    assert len(fig.axes) == 2 + 3 * 2 + 2
+    n_slab = int(np.count_nonzero(np.abs(pts[:, 2]) <= 1.0 / 16))
+    labels = _colorbar_labels(fig)
+    assert labels[0] == f"field q (slab z ≈ 0 ± 0.062, {n_slab} points)" and labels[1] == "absolute error"
+    tri = fig.axes[2].collections[0]
+    assert len(tri.get_paths()) == np.asarray(tri.get_array()).size > n_slab  # ~2·n_slab triangles
+    assert fig.axes[2].get_xlim() == (0.0, 2.0) and fig.axes[2].get_ylim() == (0.0, 1.0)
+    with pytest.raises(ValueError, match="at least 3 points"):
+        _figure3_on_points(data, pts[:2], [[0, 2], [0, 1], [-0.5, 0.5]], true[:, :2], true[:, :2], [12])
+
+
+def test_figure3_needs_grid_shape_or_points(data):
+    args = (data["t"], data["q_pred"], data["q_proj"], data["energies"], None, BOUNDS,
+            data["pred_fields"], data["true_fields"], [12], H)
+    with pytest.raises(ValueError) as exc:
+        figure3(*args)
+    assert "grid_shape" in str(exc.value) and "points" in str(exc.value)
+    pts = np.random.default_rng(0).uniform(-1, 1, (50, 2))
+    with pytest.raises(ValueError, match=r"pred_fields must have shape \(T, N\) = \(100, 50\) with N = len\(points\)"):
+        figure3(*args, points=pts)
+    with pytest.raises(ValueError, match="points must have shape"):
+        figure3(*args, points=np.zeros((256, 4)))
+    with pytest.raises(ValueError, match="bounds"):
+        figure3(*args[:5], [[0, 1]], *args[6:], points=np.zeros((256, 2)))
+    collinear = np.stack([np.linspace(-1, 1, 256)] * 2, axis=1)
+    with pytest.raises(ValueError, match="cannot be triangulated"):
+        figure3(*args, points=collinear)
+    # grid_shape wins over points (existing callers unchanged): the 16×16 grid's images, points ignored
+    fig = figure3(*args[:4], G, *args[5:], points=pts)
+    assert fig.axes[2].images[0].get_array().shape == (16, 16)

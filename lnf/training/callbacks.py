@@ -12,9 +12,9 @@ import lightning.pytorch as pl
 import numpy as np
 import torch
 
-from lnf.evaluation import RolloutEvaluation, evaluate_rollouts, long_horizon_energy
+from lnf.evaluation import RolloutEvaluation, evaluate_rollouts, long_horizon_energy, reduction_subset
 from lnf.integrators import Integrator, get_integrator
-from lnf.quadrature import midpoint_grid
+from lnf.quadrature import grid_shape_of, midpoint_grid
 
 log = logging.getLogger("lnf.evaluation")
 
@@ -32,9 +32,10 @@ def write_json_atomic(path: str | Path, payload: dict[str, Any]) -> Path:
     return path
 
 
-def save_evaluation_figures(result: RolloutEvaluation, scene: Any, grid_shape: tuple[int, ...],
+def save_evaluation_figures(result: RolloutEvaluation, scene: Any, grid_shape: Optional[tuple[int, ...]],
                             train_horizon: float, out_dir: Path, prefix: str, n_trajectories: int = 2) -> list[Path]:
-    """Figure 3 (latent, energies, fields and errors before/after the horizon) for the first trajectories."""
+    """Figure 3 (latent, energies, fields and errors before/after the horizon) for the first trajectories; fields
+    on a midpoint grid of `grid_shape`, or on the scattered ``result.points`` when it is None."""
     from lnf.plotting import _subscript, default_snapshot_indices, figure3, save_figure
 
     paths = []
@@ -45,9 +46,24 @@ def save_evaluation_figures(result: RolloutEvaluation, scene: Any, grid_shape: t
         energies = {k: v[i] for k, v in result.energies.items()}
         fig = figure3(result.times, result.q_pred[i], result.q_ref[i], energies, grid_shape, scene.bounds,
                       result.pred_fields[i, ..., comp], result.true_fields[i, ..., comp], idx, train_horizon,
-                      title=f"{prefix} trajectory {i}", field_label=label)
+                      title=f"{prefix} trajectory {i}", field_label=label, points=result.points)
         paths.append(save_figure(fig, out_dir / f"{prefix}_trajectory{i}.png"))
     return paths
+
+
+def stored_reference(split: Any, scene: Any, n: int, points: Optional[np.ndarray] = None) -> dict[str, Any]:
+    """What a split stores beside its fields for its first `n` trajectories, as evaluate_rollouts takes it: the
+    reference energies (stored, or from its states through the scene; absent when neither exists), the stored
+    loads, and the quadrature weights of its points (of the indices `points` of them, if given)."""
+    out: dict[str, Any] = {}
+    parts = split.energy_parts(scene)
+    if parts is not None:
+        out["true_energies"] = tuple(np.asarray(e)[:n] for e in parts)
+    if split.controls is not None:
+        out["controls"] = split.controls[:n]
+    if split.weights is not None:
+        out["weights"] = split.weights if points is None else split.weights[points]
+    return out
 
 
 def _count(key: str, value: Any, minimum: int = 0) -> int:
@@ -129,11 +145,19 @@ class RolloutEvaluationCallback(pl.Callback):
             return
         split = trainer.datamodule.split("val")
         n = min(self.val_trajectories, len(split))
-        points = midpoint_grid(self.val_resolution, pl_module.model.scene.bounds).numpy()
+        scene = pl_module.model.scene
+        stored = split.from_arrays or split.states.shape[-1] == 0 or not scene.provides("fields")
+        if stored:  # the stored fields on (a strided subset of at most val_resolution^dim_B of) the stored points
+            sub = reduction_subset(len(split.fine_points), None, self.val_resolution ** scene.body_dim)
+            points, truth = split.fine_points[sub], {"true_fields": split.fields[:n][:, :, sub],
+                                                     "true_velocities": split.velocities[:n][:, :, sub]}
+        else:
+            points, truth = midpoint_grid(self.val_resolution, scene.bounds).numpy(), {}
         with torch.inference_mode(False), torch.no_grad():
             result = evaluate_rollouts(pl_module.model, split.states[:n], split.times, points,
                                        self._train_horizon(split), integrator=self.integrator,
-                                       label=f"validation rollout (epoch {trainer.current_epoch})")
+                                       label=f"validation rollout (epoch {trainer.current_epoch})",
+                                       **truth, **stored_reference(split, scene, n, sub if stored else None))
         keys = ["field_rel_l2/all/median", "field_rel_l2/extrapolation/median", "projection_rel_l2/all/median",
                 "energy_rel_err/max", "latent_rmse/median", "vpt/median"]
         for key in keys:
@@ -144,19 +168,21 @@ class RolloutEvaluationCallback(pl.Callback):
         split = trainer.datamodule.split("test")
         horizon = self._train_horizon(split)
         start = time.perf_counter()
-        res = int(round(len(split.fine_points) ** (1 / model.scene.body_dim)))
-        grid_shape = (res,) * model.scene.body_dim
+        grid_shape = grid_shape_of(split.fine_points, model.scene.bounds)  # None: scattered points
         with torch.inference_mode(False), torch.no_grad():
             result = evaluate_rollouts(model, split.states, split.times, split.fine_points, horizon,
                                        true_fields=split.fields, true_velocities=split.velocities,
                                        integrator=self.integrator, grid_shape=grid_shape,
-                                       max_reduction_points=self.max_reduction_points, label="test rollout")
+                                       max_reduction_points=self.max_reduction_points, label="test rollout",
+                                       **stored_reference(split, model.scene, len(split)))
             metrics = dict(result.metrics)
             if self.long_steps > 0:
                 n = min(self.long_trajectories, len(split))
-                metrics.update(long_horizon_energy(model, split.states[:n, 0], split.fine_points, self.long_dt,
-                                                   self.long_steps, integrator=self.integrator, grid_shape=grid_shape,
-                                                   max_reduction_points=self.max_reduction_points))
+                metrics.update(long_horizon_energy(
+                    model, split.states[:n, 0], split.fine_points, self.long_dt, self.long_steps,
+                    integrator=self.integrator, grid_shape=grid_shape, max_reduction_points=self.max_reduction_points,
+                    initial_fields=(split.fields[:n, 0], split.velocities[:n, 0]),
+                    controls=None if split.controls is None else split.controls[:n]))
         metrics["evaluation_seconds"] = time.perf_counter() - start
         self.test_metrics = metrics
         for key, value in metrics.items():  # equal on every rank (each evaluates the whole split)

@@ -15,8 +15,8 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader, Dataset
 
-from lnf.dataset import (DatasetConfig, DatasetError, TrajectorySplit, ensure_dataset, generation_attributes,
-                         load_split, observed_index)
+from lnf.dataset import (SOURCE_ARRAYS, DatasetConfig, DatasetError, TrajectorySplit, dataset_source,
+                         ensure_dataset, generation_attributes, load_split, observed_index, stored_generation)
 from lnf.model import build
 from lnf.scenes.base import Scene
 from lnf.training.sampling import GlobalBatchSampler
@@ -60,9 +60,23 @@ class SnapshotDataset(Dataset):
             self.points = torch.as_tensor(f["grids/coarse"][...][self.index], dtype=torch.float32)
             self._arrays = {key: _read_leading(f[f"{split}/{key}"], self.n_times) for key in self.KEYS} \
                 if in_memory else None
-            self.potential = None if scene is None else torch.as_tensor(np.stack([  # (n, n_times), one trajectory at a time
-                scene.true_energy_parts(f[f"{split}/states"][i, :self.n_times])[1] for i in range(self.index.shape[0])
-            ]), dtype=torch.float32)
+            stateless = f[f"{split}/states"].shape[-1] == 0  # trajectories written from arrays without states
+            if scene is None:
+                self.potential = None
+            elif f"{split}/potential" in f:  # stored with the trajectories
+                self.potential = torch.as_tensor(f[f"{split}/potential"][:, :self.n_times], dtype=torch.float32)
+            elif stateless:
+                raise DatasetError(f"{self.path}: model.energy_weight > 0 needs each snapshot's potential energy, and "
+                                   f"the file has neither energies nor states; write the trajectories with kinetic= "
+                                   f"and potential= (lnf.trajectories.Trajectories), or set model.energy_weight=0")
+            else:
+                self.potential = torch.as_tensor(np.stack([  # (n, n_times), one trajectory at a time
+                    scene.true_energy_parts(f[f"{split}/states"][i, :self.n_times])[1]
+                    for i in range(self.index.shape[0])]), dtype=torch.float32)
+            if gradient_scene is not None and stateless:
+                raise DatasetError(f"{self.path}: model.gradient_weight > 0 needs ∇_X q from the scene's "
+                                   f"field_gradients(states, points), and the file holds no states; set "
+                                   f"model.gradient_weight=0")
             coarse = f["grids/coarse"][...]
             self.gradients = None if gradient_scene is None else torch.as_tensor(np.stack([  # (n, n_times, Nobs, A, dim_B)
                 gradient_scene.field_gradients(f[f"{split}/states"][i, :self.n_times], coarse[self.index[i]])
@@ -167,11 +181,24 @@ class SnapshotDataModule(pl.LightningDataModule):
                  explicit_path: Optional[bool] = None, **generation: Any) -> None:
         super().__init__()
         self.scene = build(scene) if isinstance(scene, dict) else scene
-        self.config = DatasetConfig.from_mapping(generation)
+        self.config = DatasetConfig.from_mapping(generation, ignore=("source", "generation"))
         # an explicit path may be shared by runs with other settings: its file is never overwritten with them
         # (None: whether `path` is given; a checkpoint's describe() records it)
         self.explicit_path = bool(path) if explicit_path is None else bool(explicit_path)
         self.path = Path(path) if path else default_path(data_dir, self.scene, self.config)
+        # trajectories written from arrays (lnf.trajectories.write_dataset): the file's own settings are trusted
+        self.stored: Optional[dict[str, Any]] = None
+        if path and dataset_source(self.path) == SOURCE_ARRAYS:
+            self.stored = stored_generation(self.path)
+            log.info("%s holds trajectories written from arrays: its own settings are used (%d/%d/%d train/val/test "
+                     "trajectories, %d samples at dt = %g s, the first %d for training); the generation settings "
+                     "data.n_*, data.dt, data.*_resolution, data.observed_fraction and data.seed are not used",
+                     self.path, self.stored["n_train"], self.stored["n_val"], self.stored["n_test"],
+                     self.stored["n_times"], self.stored["dt"], self.stored["train_times"])
+        elif path and not self.path.exists() and not self.scene.capabilities()["simulator"]:
+            raise DatasetError(f"data.path={path}: no file there, and scene {self.scene.name!r} has no simulator "
+                               f"(simulate() and sample_initial_states()) to generate one; write your trajectories "
+                               f"there with lnf.trajectories.write_dataset (see docs/own_system.md)")
         self._verified: Optional[tuple[int, int, int]] = None  # (inode, size, mtime) of the file last ensured
         self.on_mismatch = on_mismatch
         if int(batch_size) != batch_size or batch_size < 1:
@@ -186,6 +213,26 @@ class SnapshotDataModule(pl.LightningDataModule):
         self._snapshots: dict[str, SnapshotDataset] = {}
         self.potential_targets = False
         self.gradient_targets = False
+
+    @property
+    def from_arrays(self) -> bool:
+        """Whether the data are a user's trajectories written from arrays (no simulator behind them)."""
+        return self.stored is not None
+
+    @property
+    def train_times(self) -> int:
+        """Leading samples of each trajectory used for training."""
+        return int(self.stored["train_times"]) if self.stored else self.config.train_times
+
+    @property
+    def dt(self) -> float:
+        """Sample spacing [s]."""
+        return float(self.stored["dt"]) if self.stored else self.config.dt
+
+    @property
+    def seed(self) -> int:
+        """Seed of the masks (and of the training noise, offset)."""
+        return int(self.stored["seed"]) if self.stored else self.config.seed
 
     def prepare_data(self) -> None:
         """Generate or verify (checksums: one read of the file) the dataset file; again (``setup``) only if the
@@ -216,8 +263,8 @@ class SnapshotDataModule(pl.LightningDataModule):
         if split in self._snapshots:
             return self._snapshots[split]
         noise = self.noise if split == "train" else 0.0
-        self._snapshots[split] = SnapshotDataset(self.path, split, self.config.train_times, noise=noise,
-                                                 seed=self.config.seed + 7919, in_memory=self.in_memory,
+        self._snapshots[split] = SnapshotDataset(self.path, split, self.train_times, noise=noise,
+                                                 seed=self.seed + 7919, in_memory=self.in_memory,
                                                  scene=self.scene if self.potential_targets else None,
                                                  gradient_scene=self.scene if self.gradient_targets else None)
         return self._snapshots[split]
@@ -247,7 +294,11 @@ class SnapshotDataModule(pl.LightningDataModule):
         return self._loader("test", False)
 
     def describe(self) -> dict[str, Any]:
-        """Data settings to store in checkpoints (enough to regenerate the same file)."""
+        """Data settings to store in checkpoints (enough to regenerate the same file; for trajectories written from
+        arrays, the file's path and its recorded settings, which lnf.evaluate checks the file still has)."""
+        if self.stored is not None:
+            return {"path": str(self.path), "on_mismatch": self.on_mismatch, "explicit_path": True,
+                    "source": SOURCE_ARRAYS, "generation": dict(self.stored)}
         return {"path": str(self.path), "on_mismatch": self.on_mismatch, "explicit_path": self.explicit_path,
                 **self.config.__dict__}
 

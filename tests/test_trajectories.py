@@ -1,0 +1,197 @@
+"""Your own trajectories (lnf.trajectories, lnf.mesh_io): arrays from any simulator become an lnf dataset that
+training and evaluation read, verified and never regenerated; scattered points train, evaluate and draw."""
+import hashlib
+import json
+
+import h5py
+import numpy as np
+import pytest
+import torch
+
+from helpers import TINY, compose_config
+from lnf.dataset import DatasetConfig, DatasetError, ensure_dataset, load_split, verify_dataset
+from lnf.scenes import LiftedPendulum
+from lnf.trajectories import Trajectories, write_dataset
+
+
+def _string(n: int, T: int = 12, N: int = 9, dt: float = 0.1, seed: int = 0) -> Trajectories:
+    """Standing waves q = a cos(πt) sin(πX) on N scattered (unsorted) points of [0, 1]."""
+    x = np.random.default_rng(42).permutation(np.linspace(0.05, 0.95, N))  # the same points in every split
+    rng = np.random.default_rng(seed)
+    t = dt * np.arange(T)
+    a = rng.uniform(0.5, 1.0, (n, 1, 1))
+    q = a * np.cos(np.pi * t)[None, :, None] * np.sin(np.pi * x)[None, None, :]
+    v = -np.pi * a * np.sin(np.pi * t)[None, :, None] * np.sin(np.pi * x)[None, None, :]
+    return Trajectories(points=x[:, None], times=t, fields=q, velocities=v, weights=np.full(N, 1.0 / N))
+
+
+def _splits(**kw):
+    return _string(3, **kw), _string(1, seed=1, **kw), _string(2, seed=2, **kw)
+
+
+def _digest(path):
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+@pytest.mark.parametrize("change, message", [
+    (dict(times=0.1 * np.arange(12) ** 1.01), "uniformly spaced"),
+    (dict(times=0.1 * np.arange(12) + 1.0), "must start at 0"),
+    (dict(fields=np.zeros((2, 12, 8, 1))), "fields: expected shape (n, T, N, A) = (n, 12, 9, A)"),
+    (dict(fields=np.full((2, 12, 9, 1), np.nan)), "NaN or inf"),
+    (dict(weights=-np.ones(9)), "positive quadrature weights"),
+    (dict(kinetic=np.zeros((2, 12))), "give both energy parts or neither"),
+    (dict(states=np.zeros((3, 12, 2))), "states: expected shape (n, T, S) = (2, 12, S)"),
+])
+def test_trajectories_refuse_bad_arrays_by_name(change, message):
+    good = dict(points=np.linspace(0, 1, 9), times=0.1 * np.arange(12), fields=np.zeros((2, 12, 9)))
+    with pytest.raises(DatasetError, match=message.replace("(", r"\(").replace(")", r"\)")):
+        Trajectories(**{**good, **change})
+
+
+def test_velocities_default_to_second_order_central_differences():
+    t = 0.1 * np.arange(11)
+    q = (t ** 2)[None, :, None] * np.ones(4)  # q = t² at every point: q̇ = 2t exactly, ends included
+    tr = Trajectories(points=np.linspace(0, 1, 4), times=t, fields=q)
+    assert not tr.velocities_given
+    np.testing.assert_allclose(tr.velocities[0, :, :, 0], np.repeat(2 * t[:, None], 4, 1), atol=1e-5)
+
+
+def test_write_dataset_round_trip_links_observations_and_is_verified(tmp_path):
+    train, val, test = _splits()
+    path = write_dataset(tmp_path / "mine.h5", train, val, test, train_times=6, observed_fraction=0.5, seed=3)
+    split = load_split(path, "test")
+    assert split.from_arrays and split.train_times == 6 and split.states.shape == (2, 12, 0)
+    np.testing.assert_allclose(split.fields, test.fields, rtol=1e-6)
+    np.testing.assert_allclose(split.fine_points, test.points, rtol=1e-6)
+    np.testing.assert_allclose(split.weights, test.weights)
+    assert split.energy is None and split.energy_parts() is None  # none given: no energies
+    assert (split.masks.sum(1) == round(0.5 * 9)).all()
+    with h5py.File(path) as f:  # the observations are the same datasets, linked, not copied
+        assert f["grids/coarse"] == f["grids/fine"] and f["test/coarse_fields"] == f["test/fields"]
+        generation = json.loads(f.attrs["lnf_generation"])
+    assert generation["source"] == "arrays" and generation["velocities"] == "given"
+    assert verify_dataset(path) == path
+
+    before = _digest(path)  # generation never touches a user's file: a scene that does not fit is refused
+    with pytest.raises(DatasetError, match="the points have 1 coordinates .*, but scene 'pendulum' has a 2-D body"):
+        ensure_dataset(LiftedPendulum(), DatasetConfig(), path)
+    assert _digest(path) == before
+    with pytest.raises(DatasetError, match="a file exists there; pass overwrite=True"):
+        write_dataset(path, train, val, test)
+    assert _digest(path) == before
+
+
+def test_a_damaged_file_from_arrays_is_refused_not_regenerated(tmp_path):
+    path = write_dataset(tmp_path / "mine.h5", *_splits())
+    with h5py.File(path, "r+") as f:
+        f["train/fields"][0, 0, 0, 0] += 1.0
+    before = _digest(path)
+    with pytest.raises(DatasetError, match=r"/train/fields does not match its lnf_checksum.*cannot be regenerated"):
+        verify_dataset(path)
+    with pytest.raises(DatasetError, match=r"/train/fields does not match its lnf_checksum.*cannot be regenerated"):
+        load_split(path, "train")
+    assert _digest(path) == before
+
+
+def test_splits_must_share_points_and_times_and_scene_must_fit(tmp_path):
+    train, val, test = _splits()
+    other = _string(1, N=9, seed=5)
+    other.points = other.points + 0.01
+    with pytest.raises(DatasetError, match="val: its points differ"):
+        write_dataset(tmp_path / "a.h5", train, other, test)
+    with pytest.raises(DatasetError, match="points have 1 coordinates, but scene 'pendulum' has a 2-D body"):
+        write_dataset(tmp_path / "a.h5", train, val, test, scene=LiftedPendulum())
+    assert not (tmp_path / "a.h5").exists()
+
+
+def _pendulum_arrays(scene: LiftedPendulum, n: int, T: int, points: np.ndarray, rng) -> Trajectories:
+    """The pendulum's own trajectories on scattered points: what another simulator could have written."""
+    states = scene.simulate(scene.sample_initial_states(n, rng), 0.05 * np.arange(T))
+    q, v = scene.fields(states, points)
+    kinetic, potential = scene.true_energy_parts(states)
+    return Trajectories(points=points, times=0.05 * np.arange(T), fields=q, velocities=v,
+                        kinetic=kinetic, potential=potential)
+
+
+@pytest.mark.slow
+def test_scattered_points_from_arrays_train_evaluate_and_draw(tmp_path):
+    """Trajectories on 150 random points of the pendulum's square, written without a scene: training takes the
+    file's settings (not data.*), the test phase evaluates on the stored points and draws them scattered, and
+    lnf.evaluate refuses other times for a file without states, naming why."""
+    from lnf.evaluate import evaluate
+    from lnf.train import train
+
+    scene, rng = LiftedPendulum(), np.random.default_rng(0)
+    points = rng.uniform(-1, 1, (150, 2))
+    parts = [_pendulum_arrays(scene, n, 16, points, rng) for n in (3, 1, 2)]
+    path = write_dataset(tmp_path / "scattered.h5", *parts, train_times=8, observed_fraction=0.5)
+    cfg = compose_config("train", [*TINY, "trainer=smoke", "trainer.max_epochs=1", "logger=csv", "threads=1",
+                                   f"data.path={path}", "data.n_train=99", "data.n_times=50"], tmp_path)
+    metrics = train(cfg)
+    assert np.isfinite(metrics["field_rel_l2/all/median"]) and "energy_rel_err/max" in metrics
+    assert metrics["evaluation_points"] == 150 and metrics["frames"] == 16  # the file's, not data.n_times=50
+    assert (tmp_path / "out" / "figures" / "test_trajectory0.png").stat().st_size > 0
+
+    ckpt = tmp_path / "out" / "checkpoints" / "last.ckpt"
+    held = torch.load(ckpt, map_location="cpu", weights_only=False)["hyper_parameters"]["data"]
+    assert held["source"] == "arrays" and held["generation"]["n_train"] == 3
+    again = evaluate(compose_config("evaluate", [f"ckpt_path={ckpt}", "figures=0", "long_steps=0",
+                                            "max_reduction_points=64"], tmp_path / "e"))
+    assert again["field_rel_l2/all/median"] == pytest.approx(metrics["field_rel_l2/all/median"], rel=1e-5)
+    with pytest.raises(ValueError, match="holds no full-order states; evaluation is limited to the stored times"):
+        evaluate(compose_config("evaluate", [f"ckpt_path={ckpt}", "dt=0.01", "figures=0"], tmp_path / "e2"))
+    with pytest.raises(ValueError, match="grid.kind=uniform: fields on other points need"):
+        evaluate(compose_config("evaluate", [f"ckpt_path={ckpt}", "grid.kind=uniform", "grid.resolution=4",
+                                             "figures=0"], tmp_path / "e3"))
+
+
+def test_mesh_series_from_vtu_files_and_an_xdmf_time_series(tmp_path, monkeypatch):
+    meshio = pytest.importorskip("meshio")
+    from lnf.mesh_io import nodal_volumes, read_mesh_series
+
+    x, y = np.meshgrid(np.linspace(0, 1, 5), np.linspace(0, 2, 4), indexing="ij")
+    nodes = np.c_[x.ravel(), y.ravel(), np.zeros(x.size)]  # a 2-D mesh written with z = 0
+    quads = [[i * 4 + j, (i + 1) * 4 + j, (i + 1) * 4 + j + 1, i * 4 + j + 1] for i in range(4) for j in range(3)]
+    tris = [[a, b, c] for a, b, c, d in quads] + [[a, c, d] for a, b, c, d in quads]
+    files = []
+    for k in range(4):
+        u = np.c_[np.sin(nodes[:, 0] + 0.1 * k), nodes[:, 1] * k, np.zeros(len(nodes))]
+        files.append(tmp_path / f"step{k}.vtu")
+        meshio.write(files[-1], meshio.Mesh(nodes, [("triangle", tris)], point_data={"u": u}))
+    run = read_mesh_series(files, "u", times=0.1 * np.arange(4), components=2)
+    assert run.points.shape == (20, 2) and run.fields.shape == (1, 4, 20, 2)
+    assert run.weights.sum() == pytest.approx(2.0) and not run.velocities_given
+    np.testing.assert_allclose(run.fields[0, 3, :, 1], nodes[:, 1] * 3, rtol=1e-6)
+    quad_weights = nodal_volumes(nodes[:, :2], meshio.Mesh(nodes, [("quad", quads)]).cells, 2)
+    cell = 0.25 * 2 / 3  # a quad's area: an interior node gets 4 quarters of it, a corner one quarter
+    assert quad_weights.sum() == pytest.approx(2.0)
+    assert quad_weights[5] == pytest.approx(cell) and quad_weights[0] == pytest.approx(cell / 4)
+
+    monkeypatch.chdir(tmp_path)  # meshio writes the XDMF's HDF5 beside the working directory
+    with meshio.xdmf.TimeSeriesWriter("run.xdmf") as writer:
+        writer.write_points_cells(nodes, [("quad", quads)])
+        for k in range(3):
+            writer.write_data(0.5 * k, point_data={"u": np.sin(nodes[:, 0] + k), "v": np.cos(nodes[:, 0] + k)})
+    series = read_mesh_series(tmp_path / "run.xdmf", "u", velocity="v")
+    np.testing.assert_allclose(series.times, [0.0, 0.5, 1.0])
+    assert series.velocities_given and series.fields.shape == (1, 3, 20, 1)
+    with pytest.raises(DatasetError, match="no point data 'w'; it has"):
+        read_mesh_series(tmp_path / "run.xdmf", "w")
+    cube = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0, 0, 1], [1, 0, 1], [1, 1, 1], [0, 1, 1]], float)
+    assert nodal_volumes(cube, meshio.Mesh(cube, [("hexahedron", [list(range(8))])]).cells, 3).sum() == \
+        pytest.approx(1.0)
+
+
+def test_a_missing_file_for_a_scene_without_simulator_says_to_write_it(tmp_path):
+    from lnf.scenes import Scene
+    from lnf.training.datamodule import SnapshotDataModule
+
+    class OnlyLagrangian(Scene):
+        field_dim, bounds, energy_scale = 1, [[0.0, 1.0]], 1.0
+
+        def params(self):
+            return {}
+
+    with pytest.raises(DatasetError, match=r"no file there, and scene 'onlylagrangian' has no simulator .*"
+                                           r"lnf.trajectories.write_dataset"):
+        SnapshotDataModule(OnlyLagrangian(), path=str(tmp_path / "absent.h5"))
