@@ -4,7 +4,8 @@
     python experiments/cost_scaling.py --full   # models of the full stability study
 
 For each method (our model, the black-box latent MLP, POD-Galerkin k = 1, the full-order model) and
-each evaluation grid 16² … 256² (16 trajectories), then each batch of 1 … 64 trajectories (64² grid):
+each evaluation grid 16² … 256² (16 trajectories), then each batch of 1 … 64 trajectories (64² grid; on a
+1-D or 3-D body grids of as many points):
 the latent rollout of 100 steps (dt = 0.05 s, each method's default integrator; the faster of two runs), the decoding of the
 100 frames on the grid, and the peak resident memory above the level before the call (sampled every
 millisecond). The reduced rollout does not touch the evaluation grid, so its cost must stay flat
@@ -14,6 +15,7 @@ into outputs/studies/cost_scaling/.
 """
 from __future__ import annotations
 
+import dataclasses
 import sys
 import threading
 import time
@@ -54,16 +56,24 @@ class PeakRSS:
         self.peak = max(self.peak, self.rss() - self.base)
 
 
+def axis_resolution(points: int, dim: int) -> int:
+    """The grid resolution per axis of a `dim`-D body with about `points` points (16² = 256 points: 16 per axis
+    in 2-D, 256 in 1-D, 6 in 3-D)."""
+    return max(1, int(round(points ** (1.0 / dim))))
+
+
 def measure(model, scene, integrator: str, resolution: int, batch: int, steps: int, seed: int = 0) -> dict:
+    """Reduction, rollout of `steps` steps and decoding of `batch` sampled trajectories on a uniform grid of
+    `resolution` points per axis, with their wall-clock and peak memory."""
     import torch
 
-    from lnf.evaluation import reduction_subset
+    from lnf.evaluation import reduction_subset, trajectory_controls
     from lnf.quadrature import midpoint_grid
 
     rng = np.random.default_rng(seed)
     states0 = scene.sample_initial_states(batch, rng)
     grid = midpoint_grid(resolution, scene.bounds).float()
-    sub = torch.as_tensor(reduction_subset(len(grid), (resolution,) * 2,
+    sub = torch.as_tensor(reduction_subset(len(grid), (resolution,) * scene.body_dim,
                                            None if model.state_is_field else 1024))
     q_true, v_true = scene.fields(states0, grid[sub].numpy())
     with torch.no_grad():
@@ -71,12 +81,14 @@ def measure(model, scene, integrator: str, resolution: int, batch: int, steps: i
         q0 = model.reduce(grid[sub], torch.as_tensor(q_true, dtype=torch.float32))
         v0 = model.project_velocity(q0, grid[sub], torch.as_tensor(v_true, dtype=torch.float32))
         reduce_s = time.perf_counter() - t0
-        model.rollout(q0, v0, dt=0.05, steps=2, integrator=integrator, on_divergence="mark")  # warm-up
+        controls = trajectory_controls(scene, states0, q0)  # a scene with loads: each trajectory's load parameters
+        model.rollout(q0, v0, dt=0.05, steps=2, integrator=integrator, on_divergence="mark", controls=controls)
         rollout_s = float("inf")
         for _ in range(2):  # the faster of two runs: the first full rollout of a process carries one-off costs
             with PeakRSS() as mem_roll:
                 t0 = time.perf_counter()
-                traj = model.rollout(q0, v0, dt=0.05, steps=steps, integrator=integrator, on_divergence="mark")
+                traj = model.rollout(q0, v0, dt=0.05, steps=steps, integrator=integrator, on_divergence="mark",
+                                     controls=controls)
                 rollout_s = min(rollout_s, time.perf_counter() - t0)
         codes = torch.nan_to_num(traj.q.reshape(-1, traj.q.shape[-1]))
         with PeakRSS() as mem_dec:
@@ -84,7 +96,7 @@ def measure(model, scene, integrator: str, resolution: int, batch: int, steps: i
             for i in range(0, codes.shape[0], 32):
                 model.decode(codes[i:i + 32], grid)
             decode_s = time.perf_counter() - t0
-    return {"points": resolution**2, "resolution": resolution, "batch": batch, "steps": steps,
+    return {"points": len(grid), "resolution": resolution, "batch": batch, "steps": steps,
             "reduce_seconds": reduce_s, "rollout_seconds": rollout_s, "rollout_seconds_per_step": rollout_s / steps,
             "decode_seconds": decode_s, "total_seconds": rollout_s + decode_s,
             "rollout_peak_mib": mem_roll.peak / 2**20, "decode_peak_mib": mem_dec.peak / 2**20,
@@ -100,7 +112,10 @@ def run(study: S.Study, ckpts: dict) -> list[dict]:
 
     torch.set_num_threads(study.threads)
     smoke = study.mode == "smoke"
-    resolutions = [8, 16] if smoke else [16, 32, 64, 128, 256]
+    dim = study.scene_object().body_dim
+    # the grids of a 2-D body, 8² … 256², with as many points on a body of another dimension
+    resolutions = [axis_resolution(n**2, dim) for n in ([8, 16] if smoke else [16, 32, 64, 128, 256])]
+    batch_grid = axis_resolution((8 if smoke else 64) ** 2, dim)
     batches = [1, 2] if smoke else [1, 4, 16, 64]
     steps = 5 if smoke else 100
     rows = []
@@ -114,11 +129,11 @@ def run(study: S.Study, ckpts: dict) -> list[dict]:
             mod = FullOrderModel(model.scene, resolution=r) if m == "full_order" else model
             rows.append({"method": m, "integrator": integ, "sweep": "points",
                          **measure(mod, model.scene, integ, r, 2 if smoke else 16, steps)})
-            print(f"[cost_scaling] {m:>10} {r:>4}²: rollout {rows[-1]['rollout_seconds']:.3f} s, decode "
-                  f"{rows[-1]['decode_seconds']:.3f} s, peak {rows[-1]['decode_peak_mib']:.0f} MiB", flush=True)
+            print(f"[cost_scaling] {m:>10} {S.per_axis(r, dim):>5}: rollout {rows[-1]['rollout_seconds']:.3f} s, "
+                  f"decode {rows[-1]['decode_seconds']:.3f} s, peak {rows[-1]['decode_peak_mib']:.0f} MiB", flush=True)
         for b in batches:
             rows.append({"method": m, "integrator": integ, "sweep": "batch",
-                         **measure(model, model.scene, integ, 8 if smoke else 64, b, steps)})
+                         **measure(model, model.scene, integ, batch_grid, b, steps)})
             print(f"[cost_scaling] {m:>10} B={b:>3}: rollout {rows[-1]['rollout_seconds']:.3f} s", flush=True)
     return rows
 
@@ -148,7 +163,8 @@ def plot(study: S.Study, rows: list[dict]) -> Path:
     axes[0].set_ylabel("wall-clock [s]")
     axes[1].set_xlabel("evaluation points (16 trajectories)")
     axes[1].set_ylabel("peak memory above baseline [MiB] (RSS, 1 ms sampling)")
-    axes[2].set_xlabel("trajectories rolled out at once (64² grid)")
+    batch_points = next((r["points"] for r in rows if r["sweep"] == "batch"), "")
+    axes[2].set_xlabel(f"trajectories rolled out at once ({batch_points}-point grid)")
     axes[2].set_ylabel("rollout wall-clock per trajectory [s] (100 steps)")
     for ax in axes:
         S.log_axes(ax, legend_size=6)
@@ -157,13 +173,15 @@ def plot(study: S.Study, rows: list[dict]) -> Path:
 
 
 def summary(study: S.Study, rows: list[dict]) -> Path:
+    dim = study.scene_object().body_dim
     lines = [f"# Cost scaling ({study.scene}, {study.mode} settings)\n\n",
              f"Machine: {study.machine()}. Command: `{study.command()}`.\n\n"]
     for m in S.METHODS:
         pts = sorted((r for r in rows if r["method"] == m and r["sweep"] == "points"), key=lambda r: r["points"])
         if pts:
             per_step = [r["rollout_seconds_per_step"] for r in pts]
-            lines.append(f"- {S.LABELS[m]}: rollout per step from {pts[0]['resolution']}² to {pts[-1]['resolution']}²: "
+            lines.append(f"- {S.LABELS[m]}: rollout per step from {S.per_axis(pts[0]['resolution'], dim)} to "
+                         f"{S.per_axis(pts[-1]['resolution'], dim)}: "
                          f"{S.fmt(per_step[0] * 1e3)} → {S.fmt(per_step[-1] * 1e3)} ms (max/min {max(per_step) / min(per_step):.2f}); "
                          f"decoding {S.fmt(pts[0]['decode_seconds'])} → {S.fmt(pts[-1]['decode_seconds'])} s.\n")
     cols = [("method", "method"), ("sweep", "sweep"), ("points", "points"), ("batch", "trajectories"),
@@ -176,8 +194,8 @@ def summary(study: S.Study, rows: list[dict]) -> Path:
 def main(argv=None) -> None:
     study, _ = S.parse_args("cost_scaling", __doc__, argv)
     # the models of the stability study (same settings; reused if it already ran)
-    trainer = S.Study(name="stability", scene=study.scene, mode=study.mode, threads=study.threads,
-                      out=study.out.parent / study.out.name.replace("cost_scaling", "stability"))
+    trainer = dataclasses.replace(study, name="stability", rows=[],
+                                  out=study.out.parent / study.out.name.replace("cost_scaling", "stability"))
     ckpts = stability.train_all(trainer)
     rows = run(study, ckpts)
     csv_path = study.write_csv("cost_scaling.csv", rows)

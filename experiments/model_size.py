@@ -100,6 +100,9 @@ def main(argv=None) -> None:
     if study.supports("full_order"):
         others += study.multirun("full_order", study.method("full_order"), label={"method": "full_order"})
     pod_ok = [r for r in pod if float(r[ERR]) <= target]
+    given = [f"--{key} {getattr(args, key)}" for key in ("target", "dims", "widths", "modes")
+             if getattr(args, key) is not None]
+    command = " ".join([study.command(), *given])
     csv_path = study.write_csv("model_size.csv")
     cols = [("model.latent_dim", "d"), ("model.width", "width"), (ERR, "field_rel_l2"),
             ("field_rel_l2/extrapolation/median", "extrapolation"), ("train_seconds", "train s"),
@@ -111,8 +114,7 @@ def main(argv=None) -> None:
     pod_verdict = (f"POD-Galerkin meets the target from k = {min(int(r['model.latent_dim']) for r in pod_ok)} modes."
                    if pod_ok else "POD-Galerkin does not meet the target with the modes tried.")
     text = (f"# Model size ({study.scene}, {study.mode} settings, target field_rel_l2 ≤ {target:g})\n\n"
-            f"Machine: {study.machine()}. Command: `python experiments/model_size.py "
-            f"{' '.join(sys.argv[1:] if argv is None else argv)}`.\n\n{verdict}\n\n"
+            f"Machine: {study.machine()}. Command: `{command}`.\n\n{verdict}\n\n"
             f"{pod_verdict}\n\n"
             + S.markdown_table(sorted(rows, key=lambda r: (int(r["model.latent_dim"]), int(r["model.width"]))), cols)
             + "\nBaselines:\n\n" + S.markdown_table(others, [("method", "method")] + cols))

@@ -4,6 +4,7 @@
     python experiments/pareto.py --full          # model sizes up to the default width 256, default training
     python experiments/pareto.py --quadrature-ckpt outputs/pendulum/runs/<run>/checkpoints/last.ckpt
     python experiments/pareto.py --scene elastic # any conf/experiment/<scene>.yaml: outputs/studies/pareto-<scene>
+    PYTHONPATH=examples python experiments/pareto.py --config-dir examples/conf --scene vibrating_string  # your own
 
 Hydra multiruns of `python -m lnf.train` (each method across its own size knob: our width, depth, K
 and latent dimension; the black box's field width; POD's number of modes k = 1…8; the full-order grid)
@@ -66,6 +67,10 @@ def architecture_knobs(study: S.Study) -> bool:
 
 def sweeps(study: S.Study) -> None:
     smoke, full = study.mode == "smoke", study.mode == "full"
+    for m in S.METHODS:
+        if not study.supports(m):
+            print(f"[{study.name}] {S.LABELS[m]} left out: scene {study.scene!r} cannot run it (its baselines() says "
+                  f"{m}: False)", flush=True)
     widths = "32,64,128,256" if full else "16" if smoke else "32,64,128"
     study.multirun("lnf_width", study.method("lnf", [f"model.width={widths}"]), label={"method": "lnf", "knob": "width"})
     if architecture_knobs(study):
@@ -175,19 +180,20 @@ def simulator_seconds(ckpt: Path, threads: int) -> dict:
             "horizon_s": float(split.times[-1] + split.times[1] - split.times[0])}
 
 
-def n_quadrature_points(row: dict) -> float:
+def n_quadrature_points(row: dict, dim: int = 2) -> float:
+    """Points of a quadrature sweep's rule on a `dim`-D body (its order or resolution per axis, to the dim)."""
     if row.get("quadrature") == "uniform":
-        return float(row["quadrature.resolution"]) ** 2
-    return float(row["quadrature.order"]) ** 2
+        return float(row["quadrature.resolution"]) ** dim
+    return float(row["quadrature.order"]) ** dim
 
 
-def smallest_quadrature(rows: list[dict]) -> dict:
+def smallest_quadrature(rows: list[dict], dim: int = 2) -> dict:
     """The Gauss–Legendre rule with the fewest points whose field_rel_l2 is within 10 % of the finest rule's."""
     gl = sorted((r for r in rows if r.get("quadrature") == "gauss_legendre"), key=n_quadrature_points)
     converged = float(gl[-1]["field_rel_l2/all/median"])
     for r in gl:
         if abs(float(r["field_rel_l2/all/median"]) - converged) <= 0.1 * converged:
-            return {"order": int(r["quadrature.order"]), "points": n_quadrature_points(r),
+            return {"order": int(r["quadrature.order"]), "points": n_quadrature_points(r, dim),
                     "field_rel_l2": float(r["field_rel_l2/all/median"]), "converged": converged,
                     "converged_order": int(gl[-1]["quadrature.order"])}
     return {}
@@ -203,7 +209,7 @@ DIVERGED_AT = 10.0
 
 def cost_panels() -> list[tuple[str, str]]:
     return [(ROLLOUT, "latent rollout wall-clock per trajectory [s] (5 s horizon, 16 at once)"),
-            (COST, "rollout + decoding per trajectory [s] (64×64 grid, all sample times)"),
+            (COST, "rollout + decoding per trajectory [s] (the test grid, all sample times)"),
             ("train_seconds", "training wall-clock [s] (incl. closed-form fits)")]
 
 
@@ -275,13 +281,14 @@ def plot(study: S.Study, rows: list[dict], simulator: dict | None = None) -> lis
     out = [S.save_figure(fig, study.out / "pareto.png")]
 
     fig, ax = plt.subplots(figsize=(6.5, 4.5))
+    dim = study.scene_object().body_dim
     for prefix, name in [("", "width-64 model of this study"), ("ref_", "--quadrature-ckpt model")]:
         for kind, style in [("gauss_legendre", "o-"), ("uniform", "s--")]:
             sel = sorted((r for r in rows if r["sweep"].startswith(f"{prefix}quad_") and r.get("quadrature") == kind
                           and (prefix or not r["sweep"].startswith("ref_"))), key=n_quadrature_points)
             if sel:
                 err = np.array([float(r["field_rel_l2/all/median"]) for r in sel])
-                S.plot_marking_failures(ax, np.array([n_quadrature_points(r) for r in sel]), err, ~np.isfinite(err),
+                S.plot_marking_failures(ax, np.array([n_quadrature_points(r, dim) for r in sel]), err, ~np.isfinite(err),
                                         style, label=f"{kind.replace('_', '–')} ({name})")
     ax.set_xlabel("quadrature points inside the reduced dynamics")
     ax.set_ylabel("test field_rel_l2 (all), median")
@@ -291,8 +298,9 @@ def plot(study: S.Study, rows: list[dict], simulator: dict | None = None) -> lis
     return out
 
 
-def describe(row: dict) -> str:
-    """A short name of one point's settings (width, k or grid; the re-evaluation's dynamics, integrator and dt)."""
+def describe(row: dict, dim: int = 2) -> str:
+    """A short name of one point's settings (width, k or grid; the re-evaluation's dynamics, integrator and dt) on a
+    `dim`-D body."""
     parts = [f"{k} {row[key]}" for k, key in [("width", "model.width"), ("depth", "model.depth"),
                                                 ("K", "model.reduction_steps"), ("d/k", "model.latent_dim"),
                                                 ("grid", "model.resolution")] if row.get(key) not in (None, "")]
@@ -300,12 +308,12 @@ def describe(row: dict) -> str:
         parts += [str(row.get(k)) for k in ("dynamics", "integrator") if row.get(k)]
         parts += [f"order {row['integrator.order']}"] if row.get("integrator.order") else []
         parts += [f"dt {row['dt']}"] if row.get("dt") else []
-        parts += [f"GL {row['quadrature.order']}²"] if row.get("quadrature.order") else []
-        parts += [f"uniform {row['quadrature.resolution']}²"] if row.get("quadrature.resolution") else []
+        parts += [f"GL {S.per_axis(row['quadrature.order'], dim)}"] if row.get("quadrature.order") else []
+        parts += [f"uniform {S.per_axis(row['quadrature.resolution'], dim)}"] if row.get("quadrature.resolution") else []
     return ", ".join(parts) or "default"
 
 
-def best_of_each_method(rows: list[dict]) -> list[dict]:
+def best_of_each_method(rows: list[dict], dim: int = 2) -> list[dict]:
     """Per method, its most accurate row: the cheapest (rollout + decoding) of those within 1 % of its lowest finite
     extrapolation error, so that ties (POD beyond the modes a scene has) name the smallest model. None where every
     run diverged."""
@@ -316,7 +324,7 @@ def best_of_each_method(rows: list[dict]) -> list[dict]:
         if mine:
             lowest = min(float(r[ERR]) for r in mine)
             best = min((r for r in mine if float(r[ERR]) <= 1.01 * lowest), key=lambda r: float(r.get(COST, np.inf)))
-            out.append({**best, "label": S.LABELS[m], "setting": describe(best)})
+            out.append({**best, "label": S.LABELS[m], "setting": describe(best, dim)})
     return out
 
 
@@ -324,6 +332,7 @@ def summary(study: S.Study, rows: list[dict], simulator: dict | None = None) -> 
     core = [r for r in rows if r.get("knob") not in (*VARIANT_KNOBS, *OTHER_PULLBACK)]
     lnf = [r for r in rows if S.method_of(r) == "lnf" and not r["sweep"].startswith("ref_")]
     bb = [r for r in rows if S.method_of(r) == "latent_mlp"]
+    dim = study.scene_object().body_dim
 
     def dominance(key: str, ours: list[dict]) -> str:
         lc = np.array([float(r.get(key, np.nan)) for r in ours])
@@ -353,6 +362,9 @@ def summary(study: S.Study, rows: list[dict], simulator: dict | None = None) -> 
                   f"{dominance(COST, exact)} {exact_text}.\n"]
     else:
         lines.append("\nNo black-box latent MLP: it cannot run this scene (the scene's baselines() says so).\n")
+    left_out = [S.LABELS[m] for m in S.METHODS if m != "latent_mlp" and not study.supports(m)]
+    if left_out:
+        lines.append(f"\nLeft out, as the scene's baselines() says they cannot run it: {', '.join(left_out)}.\n")
     if simulator and ref:
         sim = simulator["simulator_seconds_per_trajectory"]
         lines.append(f"\nThe scene's full-order simulator (the ground truth), measured in this run: {S.fmt(sim)} s per "
@@ -366,17 +378,18 @@ def summary(study: S.Study, rows: list[dict], simulator: dict | None = None) -> 
                      f"{S.fmt(ref[0][COST])} s (rollout {S.fmt(ref[0]['rollout_seconds_per_trajectory'])} s): ratio ours/full "
                      f"= {float(ref[0][COST]) / float(fom[0][COST]):.3g}.\n")
     lines.append("\nMost accurate point of each method (extrapolation error; its costs and energy drift):\n\n"
-                 + S.markdown_table(best_of_each_method(rows), [
+                 + S.markdown_table(best_of_each_method(rows, dim), [
                      ("label", "method"), ("setting", "setting"), (ERR, "err extrapolation"),
                      ("field_rel_l2/in_horizon/median", "err in-horizon"), ("energy_drift/max", "energy drift"),
                      (ROLLOUT, "rollout s/traj"), (COST, "rollout+decode s/traj"), ("train_seconds", "train s")]))
     for prefix, name in [("", "reference model"), ("ref_", "given checkpoint")]:
         quad = [r for r in rows if r["sweep"].startswith(f"{prefix}quad_") and (prefix or not r["sweep"].startswith("ref_"))]
         if quad:
-            best = smallest_quadrature(quad)
+            best = smallest_quadrature(quad, dim)
             if best:
-                lines.append(f"\nSmallest Gauss–Legendre rule within 10 % of the {best['converged_order']}² result "
-                             f"({S.fmt(best['converged'])}) on the {name}: {best['order']}² = {int(best['points'])} points "
+                lines.append(f"\nSmallest Gauss–Legendre rule within 10 % of the "
+                             f"{S.per_axis(best['converged_order'], dim)} result ({S.fmt(best['converged'])}) on the "
+                             f"{name}: {S.per_axis(best['order'], dim)} = {int(best['points'])} points "
                              f"({S.fmt(best['field_rel_l2'])}).\n")
     cols = [("sweep", "sweep"), ("method", "method"), ("knob", "knob"), ("model.width", "width"),
             ("model.depth", "depth"), ("model.reduction_steps", "K"), ("model.latent_dim", "d / k"),

@@ -8,7 +8,7 @@ samples), then reports on held-out trajectories:
   - the rollout field_rel_l2 with Gauss–Legendre 8×8 and 32×32 quadrature inside the dynamics,
   - ε = ‖J‖²/⟨J,u⟩² − 1 along the code range (the tangent's misalignment with the mode u, which sets the
     reduced pendulum's frequency error ≈ ε/2).
-This is what the README's "Choices" section quotes (w0, hypernetwork, quadrature order, tangent loss).
+This is what docs/choices.md quotes (w0, hypernetwork, quadrature order, tangent loss).
 
     python experiments/probe_settings.py --seconds 240 --w0 10
     python experiments/probe_settings.py --seconds 240 --w0 30

@@ -1,33 +1,56 @@
-"""Acceptance measurements of the scenes beyond the pendulum, from their trained checkpoints.
+"""Acceptance measurements of a trained scene, chosen by what the scene declares.
 
     python -m lnf.train +experiment=<scene> hydra.run.dir=outputs/issue4/<scene>   # train first
-    python experiments/scenes.py --scene double_pendulum   # vpt and 20x-horizon energy drift vs the black box
-    python experiments/scenes.py --scene bump              # error against number of modes: ours (d = 1) vs POD
-    python experiments/scenes.py --scene elastic           # accuracy, energy, speed-up over the FEM model
-    python experiments/scenes.py --scene elastic --dynamics tabulated   # … with our tabulated M̃, Ṽ
-    python experiments/scenes.py --scene elastic_actuated  # damping and a load not seen in training
+    python experiments/scenes.py --scene <scene>      # every measurement the scene's declarations allow
+    python experiments/scenes.py --scene <scene> --measure modes --max-modes 12     # only some of them
+    python experiments/scenes.py --scene elastic --dynamics tabulated   # our rollouts with the tabulated M̃, Ṽ
+    python experiments/scenes.py --scene elastic_actuated --unseen-load 0.5 1.2     # the load of docs/benchmarks/scenes.md
+    PYTHONPATH=examples python experiments/scenes.py --config-dir examples/conf --scene vibrating_string \\
+        --ckpt <run>/checkpoints/last.ckpt                                           # a scene of your own
 
-Each writes ``outputs/scenes/<scene>/{results.json, summary.md, *.png}``. Every number is measured here,
-in one process, on the machine it runs on (threads: all cores unless --threads).
+The measurements, and what each asks of the scene (``lnf.scenes.Scene``):
+
+- ``black_box``: valid prediction time and the 20×-horizon energy drift of ours against the black-box latent
+  MLP, fitted here to the same embedding's training codes (``vpt.png``). Where ``Scene.baselines()["latent_mlp"]``.
+- ``modes``: the test error against the number of linear modes, POD-Galerkin rollouts with k = 1 … --max-modes
+  modes and the best linear k-mode projection (an SVD of the training fields), and the k that match our error
+  (``modes.png``). Where ``Scene.baselines()["pod"]``.
+- ``speedup``: where ``Scene.expensive_reference`` (the full-order reference is itself a costly discretisation):
+  the largest step of the reference (if its ``simulate`` takes a ``time_step``: 1 … 1.8 × the scene's own
+  ``time_step``) and of our rollout that meet --target in the training horizon, and the speed-up of our rollout
+  over the reference, timed back to back (``energy.png``, ``tip.png``).
+- ``loads``: where ``Scene.has_controls``: the test loads and one load not seen in training (--unseen-load, or
+  each load parameter beyond the training trajectories' range by half its width) (``tip_unseen_load.png``).
+- ``decay``: where the scene is not conservative (``Scene.is_conservative`` false) and has reference energies:
+  the free decay of the test initial states, without their loads (``decay.png``).
+
+To set a trajectory's load the study uses the scene's ``with_controls(states, controls)`` if it has one, else the
+last c entries of the full-order state where ``Scene.controls`` reads them from there. ``tip*.png`` draw the field
+at the point (and component) that moves most in the test set. Each run writes ``<out>/{results.json, *.png}``
+(default out: ``outputs/scenes/<scene>``); ``results.json`` lists the measurements it ran and why the others
+were skipped. Every number is measured here, in one process, on the machine it runs on (threads: all cores
+unless --threads).
 """
 from __future__ import annotations
 
 import argparse
 import copy
-import inspect
 import json
 import platform
 import sys
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Optional
 
 import numpy as np
 import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(1, str(ROOT / "experiments"))
 
+import studylib  # noqa: E402
 from lnf.baselines.latent_mlp import LatentMLPDynamics  # noqa: E402
 from lnf.baselines.pod import PODGalerkin  # noqa: E402
 from lnf import metrics as M  # noqa: E402
@@ -65,7 +88,7 @@ def evaluate(model: Any, split: Any, integrator: Any = None, states: np.ndarray 
                              integrator=integrator)
 
 
-# the structure-preserving integrator of these scenes: order 2 (the order-4 composition's backward substep
+# the structure-preserving integrator of these measurements: order 2 (the order-4 composition's backward substep
 # leaves some double-pendulum rollouts unsolved at dt = 0.05)
 MIDPOINT = {"name": "implicit_midpoint", "order": 2}
 
@@ -79,47 +102,98 @@ def _figure() -> tuple[Any, Any]:
     return plt.subplots(figsize=(5, 3.4), layout="constrained")
 
 
-def _ours_against_fem(times: np.ndarray, ours: np.ndarray, fem: np.ndarray, ylabel: str, title: str, path: Path,
-                      horizon: float | None = None, n: int = 3) -> Path:
-    """One quantity (n_traj, T) over time for the first `n` trajectories, ours (solid) and the FEM's (dotted)."""
+def _ours_against_reference(times: np.ndarray, ours: np.ndarray, reference: np.ndarray, ylabel: str, title: str,
+                            path: Path, horizon: float | None = None, n: int = 3) -> Path:
+    """One quantity (n_traj, T) over time for the first `n` trajectories, ours (solid) and the reference's
+    (dotted)."""
     fig, ax = _figure()
     for i in range(min(n, len(ours))):
         ax.plot(times, ours[i], color=f"C{i}")
-        ax.plot(times, fem[i], color=f"C{i}", ls=":")
+        ax.plot(times, reference[i], color=f"C{i}", ls=":")
     if horizon is not None:
         ax.axvline(horizon, color="k", ls="--", lw=0.8)
     ax.set_xlabel("t [s]")
     ax.set_ylabel(ylabel)
-    ax.set_title(f"{title}\nsolid: ours, dotted: FEM" + (", dashed: training horizon" if horizon else ""), fontsize=8)
+    ax.set_title(f"{title}\nsolid: ours, dotted: full-order reference"
+                 + (", dashed: training horizon" if horizon else ""), fontsize=8)
     return save_figure(fig, path)
 
 
-def _tip_figure(ev: Any, path: Path, title: str, horizon: float | None = None) -> Path:
-    """The vertical displacement at the free end's mid-point over time, ours against the FEM's."""
-    pts = ev.points
-    tip = int(np.argmin((pts[:, 0] - pts[:, 0].max()) ** 2 + (pts[:, 1] - pts[:, 1].mean()) ** 2))
-    return _ours_against_fem(ev.times, ev.pred_fields[:, :, tip, 1], ev.true_fields[:, :, tip, 1],
-                             "tip displacement u₂ [m]", title, path, horizon)
+def probe(evaluation: Any) -> tuple[int, int]:
+    """(point, component) of the evaluation's true field that moves most over time (its largest standard deviation
+    in time, averaged over the trajectories): the free end of a cantilever, the middle of a string."""
+    motion = np.nan_to_num(np.asarray(evaluation.true_fields, dtype=np.float64)).std(axis=1).mean(axis=0)  # (N, A)
+    point, component = np.unravel_index(int(np.argmax(motion)), motion.shape)
+    return int(point), int(component)
+
+
+def _probe_figure(ev: Any, path: Path, title: str, horizon: float | None = None,
+                  at: Optional[tuple[int, int]] = None) -> Path:
+    """The field at the point (and component) that moves most (`at`, default :func:`probe`) over time, ours against
+    the full-order reference's."""
+    point, component = probe(ev) if at is None else at
+    where = ", ".join(f"{x:.3g}" for x in ev.points[point])
+    return _ours_against_reference(ev.times, ev.pred_fields[:, :, point, component],
+                                   ev.true_fields[:, :, point, component],
+                                   f"q{component + 1} at X = ({where})", title, path, horizon)
 
 
 def pick(metrics: dict[str, float], *keys: str) -> dict[str, float]:
     return {k: float(metrics[k]) for k in keys if k in metrics}
 
 
+def timed(fn: Callable[[], Any], repeats: int = 2) -> tuple[float, Any]:
+    """(the fastest wall-clock of `repeats` calls [s], the last call's result)."""
+    best, result = float("inf"), None
+    for _ in range(repeats):
+        start = time.perf_counter()
+        result = fn()
+        best = min(best, time.perf_counter() - start)
+    return best, result
+
+
+class Skipped(Exception):
+    """A measurement that cannot run on this scene or checkpoint; the message says why."""
+
+
+@dataclass
+class Context:
+    """What every measurement gets: the model, its dataset, the test split and our rollout of it, the output folder
+    and the command line's options."""
+
+    model: Any
+    dm: SnapshotDataModule
+    out: Path
+    options: argparse.Namespace
+    split: Any = field(init=False)
+    base: Any = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.split = self.dm.split("test")
+        self.base = evaluate(self.model, self.split)
+
+    @property
+    def scene(self) -> Any:
+        return self.model.scene
+
+
 # ---------------------------------------------------------------------------------------------------------
-def double_pendulum(model: Any, dm: SnapshotDataModule, out: Path, bb_iterations: int = 2000) -> dict[str, Any]:
-    split = dm.split("test")
-    ours = evaluate(model, split)
-    black_box = copy.deepcopy(model)
-    black_box.latent_dynamics = LatentMLPDynamics(latent_dim=model.latent_dim, iterations=bb_iterations)
-    fit = fit_latent_dynamics(black_box, dm)
-    bb = evaluate(black_box, split, "rk4")
+def black_box(ctx: Context) -> dict[str, Any]:
+    """vpt and the 20×-horizon energy drift of ours against the black-box latent MLP on the same embedding."""
+    model, split, ours = ctx.model, ctx.split, ctx.base
+    if not hasattr(model, "latent_dynamics"):
+        raise Skipped(f"the checkpoint is a {type(model).__name__}, not our model: it has no embedding to fit a "
+                      "black box to")
+    black = copy.deepcopy(model)
+    black.latent_dynamics = LatentMLPDynamics(latent_dim=model.latent_dim, iterations=ctx.options.bb_iterations)
+    fit = fit_latent_dynamics(black, ctx.dm)
+    bb = evaluate(black, split, "rk4")
     dt = float(split.times[1] - split.times[0])
     horizon = float(split.times[split.train_times])
     steps = int(round(20 * horizon / dt))
     states0 = split.states[:8, 0]  # the first 8 test trajectories (20x horizon: 1000 steps each)
     drift_ours = long_horizon_energy(model, states0, split.fine_points, dt, steps, MIDPOINT)
-    drift_bb = long_horizon_energy(black_box, states0, split.fine_points, dt, steps, "rk4")
+    drift_bb = long_horizon_energy(black, states0, split.fine_points, dt, steps, "rk4")
     keys = ("vpt/median", "vpt/min", "field_rel_l2/in_horizon/median", "field_rel_l2/all/median",
             "projection_rel_l2/all/median", "energy_rel_err/median", "diverged_fraction")
     result = {"ours": {**pick(ours.metrics, *keys), **drift_ours}, "black_box": {**pick(bb.metrics, *keys), **drift_bb},
@@ -133,7 +207,7 @@ def double_pendulum(model: Any, dm: SnapshotDataModule, out: Path, bb_iterations
     ax.set_xlabel("valid prediction time [s]")
     ax.set_ylabel("test trajectories")
     ax.legend(fontsize=8)
-    save_figure(fig, out / "vpt.png")
+    save_figure(fig, ctx.out / "vpt.png")
     return result
 
 
@@ -144,10 +218,12 @@ def _vpt_per_trajectory(evaluation: Any) -> np.ndarray:
 
 
 # ---------------------------------------------------------------------------------------------------------
-def bump(model: Any, dm: SnapshotDataModule, out: Path, max_modes: int = 12) -> dict[str, Any]:
-    split = dm.split("test")
-    ours = evaluate(model, split)
-    points, values, velocities = (torch.as_tensor(a, dtype=torch.float64) for a in dm.observations("train"))
+def modes(ctx: Context) -> dict[str, Any]:
+    """The test error of POD-Galerkin with k = 1 … --max-modes modes and of the best linear k-mode projection,
+    against ours; the k that match our error."""
+    model, dm, split, ours = ctx.model, ctx.dm, ctx.split, ctx.base
+    max_modes = ctx.options.max_modes
+    points, values, _ = (torch.as_tensor(a, dtype=torch.float64) for a in dm.observations("train"))
     pod_rows = []
     for k in range(1, max_modes + 1):
         pod = PODGalerkin(model.scene, latent_dim=k, degree=24).double()
@@ -156,12 +232,14 @@ def bump(model: Any, dm: SnapshotDataModule, out: Path, max_modes: int = 12) -> 
         pod_rows.append({"k": k, **pick(metrics, "field_rel_l2/all/median", "projection_rel_l2/all/median",
                                         "diverged_fraction")})
         print(f"POD k={k}: {pod_rows[-1]}", flush=True)
-    # the best any k-mode linear model can do: SVD of the full fine-grid training fields, projection of the test fields
+    # the best any k-mode linear model can do: SVD of the full fine-grid training fields (every component),
+    # projection of the test fields
     train = dm.split("train")
-    X = train.fields[:, :train.train_times, :, 0].reshape(-1, train.fields.shape[2]).astype(np.float64)
+    n_values = train.fields.shape[2] * train.fields.shape[3]  # points × components
+    X = train.fields[:, :train.train_times].reshape(-1, n_values).astype(np.float64)
     mean = X.mean(0)
     _, _, Vt = np.linalg.svd(X - mean, full_matrices=False)
-    Y = split.fields[..., 0].astype(np.float64)
+    Y = split.fields.reshape(*split.fields.shape[:2], n_values).astype(np.float64)
     oracle = []
     for k in range(1, max_modes + 1):
         R = mean + ((Y - mean) @ Vt[:k].T) @ Vt[:k]
@@ -169,16 +247,17 @@ def bump(model: Any, dm: SnapshotDataModule, out: Path, max_modes: int = 12) -> 
     ours_err = float(ours.metrics["field_rel_l2/all/median"])
     needed = next((r["k"] for r in pod_rows if r["field_rel_l2/all/median"] <= ours_err), None)
     needed_oracle = next((k + 1 for k, e in enumerate(oracle) if e <= ours_err), None)
+    d = int(model.latent_dim)
     fig, ax = _figure()
     ks = [r["k"] for r in pod_rows]
     ax.semilogy(ks, [r["field_rel_l2/all/median"] for r in pod_rows], "s-", label="POD-Galerkin rollout")
     ax.semilogy(range(1, max_modes + 1), oracle, "k:", label="best linear k-mode projection (full-grid SVD)")
-    ax.semilogy([1], [ours_err], "o", ms=9, color="C3", label=f"ours, d = 1 ({ours_err:.3f})")
+    ax.semilogy([d], [ours_err], "o", ms=9, color="C3", label=f"ours, d = {d} ({ours_err:.3f})")
     ax.axhline(ours_err, color="C3", lw=0.8, ls="--")
     ax.set_xlabel("modes k (POD) / latent dimension d (ours)")
     ax.set_ylabel("test field_rel_l2 (all, median)")
     ax.legend(fontsize=8)
-    save_figure(fig, out / "modes.png")
+    save_figure(fig, ctx.out / "modes.png")
     return {"ours": pick(ours.metrics, "field_rel_l2/all/median", "field_rel_l2/in_horizon/median",
                          "field_rel_l2/extrapolation/median", "projection_rel_l2/all/median", "energy_rel_err/median"),
             "pod": pod_rows, "oracle_projection": oracle, "pod_modes_to_match_ours": needed,
@@ -186,20 +265,30 @@ def bump(model: Any, dm: SnapshotDataModule, out: Path, max_modes: int = 12) -> 
 
 
 # ---------------------------------------------------------------------------------------------------------
-def timed(fn: Callable[[], Any], repeats: int = 2) -> tuple[float, Any]:
-    best, result = float("inf"), None
-    for _ in range(repeats):
-        start = time.perf_counter()
-        result = fn()
-        best = min(best, time.perf_counter() - start)
-    return best, result
+REFERENCE_STEP_FACTORS = (1.0, 1.2, 1.4, 1.6, 1.8)  # × the scene's own time_step (0.5 … 0.9 of a CFL limit at 0.5)
 
 
-def elastic(model: Any, dm: SnapshotDataModule, out: Path, target: float = 0.05) -> dict[str, Any]:
-    scene, split = model.scene, dm.split("test")
+def reference_steps(scene: Any) -> list[Optional[float]]:
+    """The time steps at which to try the full-order reference: multiples of its own ``time_step`` where its
+    ``simulate`` takes a ``time_step`` argument, else [None] (its own step only)."""
+    import inspect
+
+    own = getattr(scene, "time_step", None)
+    if "time_step" in inspect.signature(scene.simulate).parameters and isinstance(own, (int, float)) and own > 0:
+        return [f * float(own) for f in REFERENCE_STEP_FACTORS]
+    return [None]
+
+
+def _simulate(scene: Any, states0: np.ndarray, times: np.ndarray, time_step: Optional[float]) -> np.ndarray:
+    return scene.simulate(states0, times) if time_step is None else scene.simulate(states0, times, time_step=time_step)
+
+
+def speedup(ctx: Context) -> dict[str, Any]:
+    """Accuracy, energy and the speed-up of our rollout over the scene's (expensive) full-order reference."""
+    model, split, base, target = ctx.model, ctx.split, ctx.base, ctx.options.target
+    scene = model.scene
     times = split.times
     in_h = times < times[split.train_times]
-    base = evaluate(model, split)
     result: dict[str, Any] = {"ours": pick(base.metrics, "field_rel_l2/in_horizon/median", "field_rel_l2/in_horizon/max",
                                            "field_rel_l2/all/median", "field_rel_l2/extrapolation/median",
                                            "projection_rel_l2/in_horizon/median", "energy_rel_err/median",
@@ -207,27 +296,27 @@ def elastic(model: Any, dm: SnapshotDataModule, out: Path, target: float = 0.05)
     long = long_horizon_energy(model, split.states[:4, 0], split.fine_points, float(times[1] - times[0]), 1000,
                                MIDPOINT)
     result["ours"].update(long)
-    # full-order model: largest stable step that meets the target against the ground truth, in the horizon
+    # full-order reference: the largest step that meets the target against the stored ground truth, in the horizon
     states0 = split.states[:, 0]
-    cfl = scene.time_step / scene.cfl_fraction
+    ref = split.fields[:, in_h].astype(np.float64)
     fom = []
-    for frac in (0.5, 0.6, 0.7, 0.8, 0.9):
+    for step in reference_steps(scene):
+        factor = None if step is None else step / float(scene.time_step)
         try:
-            seconds, states = timed(lambda: scene.simulate(states0, times[in_h], time_step=frac * cfl), repeats=1)
+            seconds, states = timed(lambda: _simulate(scene, states0, times[in_h], step), repeats=1)
         except RuntimeError:
-            fom.append({"cfl_fraction": frac, "stable": False})
+            fom.append({"step_factor": factor, "time_step": step, "stable": False})
             continue
-        u = states[..., :2 * scene.n_nodes]
-        ref = split.states[:, in_h, :2 * scene.n_nodes]
-        err = float(np.median(np.sqrt(((u - ref) ** 2).sum((1, 2)) / np.maximum((ref**2).sum((1, 2)), 1e-300))))
-        fom.append({"cfl_fraction": frac, "stable": True, "seconds": seconds, "nodal_rel_l2": err})
+        q = np.asarray(scene.fields(states, split.fine_points)[0], dtype=np.float64)
+        err = float(np.median(np.sqrt(((q - ref) ** 2).sum((1, 2, 3)) / np.maximum((ref**2).sum((1, 2, 3)), 1e-300))))
+        fom.append({"step_factor": factor, "time_step": step, "stable": True, "seconds": seconds, "field_rel_l2": err})
         print("FOM", fom[-1], flush=True)
-    ok = [r for r in fom if r.get("stable") and r["nodal_rel_l2"] <= target]
+    ok = [r for r in fom if r.get("stable") and r["field_rel_l2"] <= target]
     fom_best = ok[-1] if ok else None
     # reduced model: largest sample step (rollout step) that meets the target
     rom = []
     for stride in (1, 2, 4):
-        ev = evaluate(model, split, stride=stride)
+        ev = base if stride == 1 else evaluate(model, split, stride=stride)
         rom.append({"dt": float(times[stride] - times[0]), "field_rel_l2/in_horizon/median":
                     float(ev.metrics["field_rel_l2/in_horizon/median"]),
                     "diverged_fraction": float(ev.metrics["diverged_fraction"])})
@@ -242,103 +331,255 @@ def elastic(model: Any, dm: SnapshotDataModule, out: Path, target: float = 0.05)
     controls = trajectory_controls(scene, states0, q0)
     roll = lambda n: model.rollout(q0, v0, dt=rom_best["dt"], steps=n, integrator=MIDPOINT,  # noqa: E731
                                    on_divergence="mark", controls=controls)
-    tabulation = model.tabulation
+    tabulation = getattr(model, "tabulation", None)
     timings = {}
     for name, spec in [("tabulated", tabulation), ("exact", None)] if tabulation is not None else [("exact", None)]:
-        model.set_tabulation(spec)
+        if hasattr(model, "set_tabulation"):
+            model.set_tabulation(spec)
         roll(2)  # warm-up (and the table, built once per model: its cost is reported apart)
         timings[name], _ = timed(lambda: roll(steps))
-    model.set_tabulation(tabulation)
+    if hasattr(model, "set_tabulation"):
+        model.set_tabulation(tabulation)
     rom_seconds = timings["tabulated" if tabulation is not None else "exact"]
-    fom_frac = fom_best["cfl_fraction"] if fom_best else 0.5
-    fom_seconds, _ = timed(lambda: scene.simulate(states0, times[in_h], time_step=fom_frac * cfl))
-    result.update(fom=fom, rom=rom, fom_cfl_fraction=fom_frac, rom_dt=rom_best["dt"], rom_seconds=rom_seconds,
+    fom_step = fom_best["time_step"] if fom_best else reference_steps(scene)[0]
+    fom_seconds, _ = timed(lambda: _simulate(scene, states0, times[in_h], fom_step))
+    result.update(fom=fom, rom=rom, fom_time_step=fom_step,
+                  fom_step_factor=None if fom_step is None else fom_step / float(scene.time_step),
+                  rom_dt=rom_best["dt"], rom_seconds=rom_seconds,
                   rom_seconds_exact=timings["exact"], speedup_exact=fom_seconds / timings["exact"],
                   dynamics="tabulated" if tabulation is not None else "lagrangian",
                   fom_seconds=fom_seconds, speedup=fom_seconds / rom_seconds, trajectories=len(states0),
-                  horizon_s=float(times[in_h][-1]), fom_nodes=scene.n_nodes, fom_mesh=scene.mesh_shape)
+                  horizon_s=float(times[in_h][-1]), fom_state_size=int(states0.shape[-1]))
     if tabulation is not None:
         result["table"] = {k: v for k, v in model.dynamics().info.items() if not isinstance(v, list)}
     e, horizon = base.energies, float(times[split.train_times])
     title = f"test trajectories, implicit midpoint, dt = {times[1] - times[0]:g} s"
-    _ours_against_fem(times, (e["kinetic_pred"] + e["potential_pred"]) / scene.energy_scale,
-                      (e["kinetic_true"] + e["potential_true"]) / scene.energy_scale, "energy / E_scale", title,
-                      out / "energy.png", horizon)
-    _tip_figure(base, out / "tip.png", title, horizon)
+    if "kinetic_true" in e:  # a scene without reference energies has no energy figure
+        _ours_against_reference(times, (e["kinetic_pred"] + e["potential_pred"]) / scene.energy_scale,
+                                (e["kinetic_true"] + e["potential_true"]) / scene.energy_scale, "energy / E_scale",
+                                title, ctx.out / "energy.png", horizon)
+    _probe_figure(base, ctx.out / "tip.png", title, horizon)
     return result
 
 
-def elastic_actuated(model: Any, dm: SnapshotDataModule, out: Path) -> dict[str, Any]:
-    scene, split = model.scene, dm.split("test")
-    base = evaluate(model, split)
+# ---------------------------------------------------------------------------------------------------------
+def with_controls(scene: Any, states: np.ndarray, controls: np.ndarray) -> np.ndarray:
+    """Full-order states (n, S) with the load parameters `controls` (n, c) instead of their own: the scene's
+    ``with_controls(states, controls)`` if it defines one, else the last c entries of the state replaced, where that
+    is where ``Scene.controls`` reads them from. Checked: ``scene.controls`` of the result is `controls`."""
+    states, controls = np.asarray(states, dtype=np.float64), np.asarray(controls, dtype=np.float64)
+    if hasattr(scene, "with_controls"):
+        out = np.asarray(scene.with_controls(states, controls))
+    else:
+        own, c = scene.controls(states), controls.shape[-1]
+        if own is None or np.shape(own)[-1] != c or not np.array_equal(np.asarray(own), states[..., -c:]):
+            raise Skipped(f"scene {scene.name!r} has no with_controls(states, controls) and does not keep its "
+                          f"{c} load parameters as the last entries of its state: define with_controls to set loads")
+        out = states.copy()
+        out[..., -c:] = controls
+    if not np.allclose(scene.controls(out), controls):
+        raise Skipped(f"scene {scene.name!r}: the states with other loads do not carry them (controls() of the "
+                      f"result is not what was set)")
+    return out
+
+
+def unseen_load(training: np.ndarray, given: Optional[list[float]]) -> np.ndarray:
+    """A load (c,) not seen in training: `given` (--unseen-load), else each parameter beyond the training
+    trajectories' range [lo, hi] by half its width (hi + (hi − lo)/2; twice hi where the range is a point)."""
+    lo, hi = training.min(0), training.max(0)
+    if given is not None:
+        if len(given) != len(hi):
+            raise SystemExit(f"--unseen-load: the scene's loads have {len(hi)} parameters, got {len(given)} values")
+        return np.asarray(given, dtype=np.float64)
+    return np.where(hi > lo, hi + 0.5 * (hi - lo), 2.0 * hi)
+
+
+LOAD_KEYS = ("field_rel_l2/all/median", "field_rel_l2/all/max", "field_rel_l2/in_horizon/median",
+             "field_rel_l2/extrapolation/median", "energy_rel_err/median", "diverged_fraction")
+
+
+def loads(ctx: Context) -> dict[str, Any]:
+    """The test loads and one load not seen in training, each against the re-simulated reference."""
+    scene, split, base, model = ctx.scene, ctx.split, ctx.base, ctx.model
     times = split.times
-    # damping: free decay (no load) from the test initial shapes
-    u0, v0, load = scene.unpack(split.states[:, 0])
-    free = scene.pack(u0, v0, np.zeros_like(load))
-    decay = evaluate(model, split, states=scene.simulate(free, times))
-    e = decay.energies
+    states0 = split.states[:, 0]
+    training = np.asarray(scene.controls(ctx.dm.split("train").states[:, 0]), dtype=np.float64)
+    load = unseen_load(training, ctx.options.unseen_load)
+    unseen_states = with_controls(scene, states0, np.tile(load, (len(states0), 1)))
+    unseen = evaluate(model, split, states=scene.simulate(unseen_states, times))
+    text = ", ".join(f"{x:.3g}" for x in load)
+    ranges = ", ".join(f"{a:.3g}…{b:.3g}" for a, b in zip(training.min(0), training.max(0)))
+    _probe_figure(unseen, ctx.out / "tip_unseen_load.png",
+                  f"a load not seen in training ({text}; training {ranges}), dt = {times[1] - times[0]:g} s",
+                  horizon=float(times[split.train_times]))
+    return {"test": pick(base.metrics, *LOAD_KEYS),
+            "unseen_load": {"controls": load.tolist(), "training_range": [[float(a), float(b)] for a, b in
+                                                                          zip(training.min(0), training.max(0))],
+                            **pick(unseen.metrics, *LOAD_KEYS)}}
+
+
+def decay(ctx: Context) -> dict[str, Any]:
+    """The free decay of the test initial states (their loads removed): does the reduced energy decay?"""
+    scene, split, model = ctx.scene, ctx.split, ctx.model
+    times = split.times
+    states0 = split.states[:, 0]
+    free = with_controls(scene, states0, np.zeros_like(scene.controls(states0))) if scene.has_controls else states0
+    ev = evaluate(model, split, states=scene.simulate(free, times))
+    e = ev.energies
     pred = e["kinetic_pred"] + e["potential_pred"]
     true = e["kinetic_true"] + e["potential_true"]
-    # a load outside the training range: frequency 1.2 Hz (training 0.3–0.7 Hz), amplitude 0.5
-    unseen_load = np.tile([[0.5, 1.2]], (len(load), 1))
-    unseen = evaluate(model, split, states=scene.simulate(scene.pack(u0, v0, unseen_load), times))
-    _ours_against_fem(times, pred / scene.energy_scale, true / scene.energy_scale, "energy / E_scale",
-                      f"free decay, α = {scene.damping} 1/s", out / "decay.png")
-    _tip_figure(unseen, out / "tip_unseen_load.png",
-                f"a 1.2 Hz load not seen in training (0.3–0.7 Hz), dt = {times[1] - times[0]:g} s",
-                horizon=float(times[split.train_times]))
+    _ours_against_reference(times, pred / scene.energy_scale, true / scene.energy_scale, "energy / E_scale",
+                            "free decay (no load)", ctx.out / "decay.png")
     rise = np.max(np.diff(pred, axis=1), axis=1) / scene.energy_scale
-    keys = ("field_rel_l2/all/median", "field_rel_l2/all/max", "field_rel_l2/in_horizon/median",
-            "field_rel_l2/extrapolation/median", "energy_rel_err/median", "diverged_fraction")
-    return {"test": pick(base.metrics, *keys), "unseen_load": {"amplitude": 0.5, "frequency_hz": 1.2,
-                                                                 **pick(unseen.metrics, *keys)},
-            "free_decay": {**pick(decay.metrics, *keys),
+    return {"free_decay": {**pick(ev.metrics, *LOAD_KEYS),
                            "energy_ratio_end_over_start_ours_median": float(np.median(pred[:, -1] / pred[:, 0])),
                            "energy_ratio_end_over_start_fem_median": float(np.median(true[:, -1] / true[:, 0])),
                            "largest_energy_rise_per_sample_over_scale": float(np.max(rise))}}
 
 
-# The reports of the built-in experiments, by experiment name (conf/experiment/<name>.yaml). Each report is
-# specific to its scene by nature (a double pendulum's vpt, the bump's mode count, a cantilever's tip), so this
-# table, unlike the studies (studylib.py and the studies built on it, which ask the scene object), is keyed by name.
-# A report takes (model, datamodule, out folder) and any of the keyword options of main() below by name.
-SCENES: dict[str, Callable[..., dict[str, Any]]] = {"double_pendulum": double_pendulum, "bump": bump,
-                                                    "elastic": elastic, "elastic_actuated": elastic_actuated}
+# ---------------------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Measurement:
+    """One measurement: what it does, and why a scene cannot have it (None: it can)."""
+
+    run: Callable[[Context], dict[str, Any]]
+    why_not: Callable[[Any], Optional[str]]
+
+
+def _no_simulator(scene: Any) -> Optional[str]:
+    return None if scene.capabilities()["simulator"] else "it re-simulates the reference, and the scene has no simulator"
+
+
+def _why_not_black_box(scene: Any) -> Optional[str]:
+    if not scene.baselines().get("latent_mlp", True):
+        return "its baselines() says the black-box latent MLP cannot run it (latent_mlp: False)"
+    return None
+
+
+def _why_not_modes(scene: Any) -> Optional[str]:
+    return None if scene.baselines().get("pod", True) else "its baselines() says POD-Galerkin cannot run it (pod: False)"
+
+
+def _why_not_speedup(scene: Any) -> Optional[str]:
+    if not scene.expensive_reference:
+        return "its full-order reference is not expensive (Scene.expensive_reference is False)"
+    return _no_simulator(scene)
+
+
+def _why_not_loads(scene: Any) -> Optional[str]:
+    return "it has no loads (Scene.has_controls is False)" if not scene.has_controls else _no_simulator(scene)
+
+
+def _why_not_decay(scene: Any) -> Optional[str]:
+    if scene.is_conservative:
+        return "it is conservative (Scene.is_conservative): nothing decays"
+    if not scene.capabilities()["true_energies"]:
+        return "it has no reference energies (true_energy_parts)"
+    return _no_simulator(scene)
+
+
+MEASUREMENTS: dict[str, Measurement] = {
+    "black_box": Measurement(black_box, _why_not_black_box),
+    "modes": Measurement(modes, _why_not_modes),
+    "speedup": Measurement(speedup, _why_not_speedup),
+    "loads": Measurement(loads, _why_not_loads),
+    "decay": Measurement(decay, _why_not_decay),
+}
+
+
+def applicable(scene: Any) -> dict[str, Optional[str]]:
+    """Each measurement → None where the scene's declarations allow it, else why not."""
+    return {name: m.why_not(scene) for name, m in MEASUREMENTS.items()}
+
+
+def merge(result: dict[str, Any], part: dict[str, Any], name: str) -> None:
+    """A measurement's keys into the results: the "ours" metrics of several merge (they come from one rollout);
+    any other key is one measurement's own."""
+    for key, value in part.items():
+        if key == "ours":
+            result.setdefault("ours", {}).update(value)
+        elif key in result:
+            raise RuntimeError(f"measurement {name!r} writes {key!r}, which another one wrote already")
+        else:
+            result[key] = value
 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--scene", required=True, choices=sorted(SCENES))
+    parser.add_argument("--config-dir", type=Path, default=None, metavar="DIR",
+                        help="a Hydra config folder of your own, as `python -m lnf.train --config-dir DIR` takes it "
+                             "(the scene's module must be importable: PYTHONPATH)")
+    parser.add_argument("--scene", default=None,
+                        help="the experiment (conf/experiment/<scene>.yaml or DIR/experiment/<scene>.yaml): names the "
+                             "default checkpoint and output folder; optional with --ckpt")
     parser.add_argument("--ckpt", default=None, help="default: outputs/issue4/<scene>/checkpoints/last.ckpt")
     parser.add_argument("--out", default=None, help="default: outputs/scenes/<scene>")
+    parser.add_argument("--measure", nargs="+", choices=sorted(MEASUREMENTS), default=None,
+                        help="measurements to run (default: every one the scene's declarations allow)")
     parser.add_argument("--threads", type=int, default=None)
     parser.add_argument("--dynamics", choices=["checkpoint", "lagrangian", "tabulated"], default="checkpoint",
                         help="our rollouts: as the checkpoint was trained, the exact pullback, or the tabulated one "
-                             "(elastic also times the exact one for comparison)")
-    parser.add_argument("--max-modes", type=int, default=12, help="bump: POD modes k = 1 … this")
+                             "(speedup also times the exact one for comparison)")
+    parser.add_argument("--max-modes", type=int, default=12, help="modes: POD modes k = 1 … this")
     parser.add_argument("--bb-iterations", type=int, default=2000,
-                        help="double_pendulum: training iterations of the black box's latent MLP")
+                        help="black_box: training iterations of the black box's latent MLP")
+    parser.add_argument("--target", type=float, default=0.05,
+                        help="speedup: the in-horizon field error that the reference's and our steps must meet")
+    parser.add_argument("--unseen-load", type=float, nargs="+", default=None, metavar="C",
+                        help="loads: the load parameters not seen in training (default: beyond the training range)")
     args = parser.parse_args(argv)
+    if args.scene is None and args.ckpt is None:
+        parser.error("give --scene (its default checkpoint) or --ckpt")
+    config_dir = args.config_dir.expanduser().resolve() if args.config_dir else None
+    if config_dir is not None and not config_dir.is_dir():
+        parser.error(f"--config-dir {args.config_dir}: no such folder ({config_dir})")
+    if args.scene is not None:
+        try:
+            studylib.experiment_file(args.scene, config_dir)
+        except FileNotFoundError as err:
+            parser.error(f"--scene {args.scene!r}: {err}" + ("" if config_dir else " (a scene of your own: give its "
+                                                              "config folder with --config-dir)"))
     if args.threads:
         torch.set_num_threads(args.threads)
-    ckpt = Path(args.ckpt or ROOT / "outputs" / "issue4" / args.scene / "checkpoints" / "last.ckpt")
+    default_ckpt = ROOT / "outputs" / "issue4" / str(args.scene) / "checkpoints" / "last.ckpt"
+    ckpt = Path(args.ckpt).resolve() if args.ckpt else default_ckpt
     if not ckpt.exists():
-        raise SystemExit(f"no checkpoint at {ckpt}; train first: python -m lnf.train +experiment={args.scene} "
-                         f"hydra.run.dir=outputs/issue4/{args.scene}")
-    out = Path(args.out or ROOT / "outputs" / "scenes" / args.scene)
-    out.mkdir(parents=True, exist_ok=True)
+        train = f"python -m lnf.train{f' --config-dir {config_dir}' if config_dir else ''} +experiment={args.scene}"
+        raise SystemExit(f"no checkpoint at {ckpt}; train first: {train} hydra.run.dir=outputs/issue4/{args.scene}")
     model = load(ckpt)
     model.eval()
+    name = args.scene or model.scene.name
+    out = Path(args.out).resolve() if args.out else ROOT / "outputs" / "scenes" / name
+    out.mkdir(parents=True, exist_ok=True)
     start = time.perf_counter()
-    report = SCENES[args.scene]
-    options = {"max_modes": args.max_modes, "bb_iterations": args.bb_iterations}
-    extra = {k: v for k, v in options.items() if k in inspect.signature(report).parameters}  # the ones it takes
+    reasons = applicable(model.scene)
+    chosen = args.measure or [m for m, why in reasons.items() if why is None]
+    refused = [f"{m}: {reasons[m]}" for m in chosen if reasons[m] is not None]
+    if refused:
+        raise SystemExit(f"--measure: scene {name!r} cannot have {'; '.join(refused)}")
+    for m, why in reasons.items():
+        if m not in chosen:
+            print(f"[scenes] {m}: " + (f"skipped, {why}" if why else "not asked for (--measure)"), flush=True)
     dm = datamodule_of(model)
     if args.dynamics != "checkpoint" and hasattr(model, "set_tabulation"):
         model.set_tabulation((model.tabulation or {}) if args.dynamics == "tabulated" else None)
     if getattr(model, "tabulation", None) is not None:
         ensure_code_range(model, Path(dm.path), model.scene, dm.config)
-    result = report(model, dm, out, **extra)
+    ctx = Context(model=model, dm=dm, out=out, options=args)
+    result: dict[str, Any] = {"scene": name, "measurements": [], "skipped": {}}
+    for m in chosen:
+        print(f"[scenes] {m} ...", flush=True)
+        try:
+            part = MEASUREMENTS[m].run(ctx)
+        except Skipped as why:
+            if args.measure:
+                raise SystemExit(f"--measure {m}: {why}")
+            print(f"[scenes] {m}: skipped, {why}", flush=True)
+            result["skipped"][m] = str(why)
+            continue
+        merge(result, part, m)
+        result["measurements"].append(m)
+    result["skipped"].update({m: why for m, why in reasons.items() if why is not None})
     result["dynamics"] = "tabulated" if getattr(model, "tabulation", None) is not None else "lagrangian"
     result["seconds"] = time.perf_counter() - start
     result["checkpoint"] = str(ckpt)

@@ -45,7 +45,7 @@ def plot(study: S.Study, rows: list[dict]) -> Path:
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, 2, figsize=(12, 4.5), gridspec_kw={"wspace": 0.3})
-    for ax, knob, key, xlabel in [(axes[0], "fraction", "data.observed_fraction", "observed share of the 32×32 grid"),
+    for ax, knob, key, xlabel in [(axes[0], "fraction", "data.observed_fraction", "observed share of the coarse grid (data.coarse_resolution)"),
                                   (axes[1], "noise", "data.noise", "observation noise (std / RMS)")]:
         for m in ("lnf", "latent_mlp", "pod"):
             sel = [r for r in rows if r["method"] == m and r["knob"] == knob]

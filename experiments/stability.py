@@ -2,6 +2,7 @@
 
     python experiments/stability.py           # reduced settings (< 30 min on 2 CPU cores)
     python experiments/stability.py --full    # default model size and training budget
+    PYTHONPATH=examples python experiments/stability.py --config-dir examples/conf --scene vibrating_string  # your own
 
 Trains each method once with `python -m lnf.train` (our model, the black-box latent MLP, POD-Galerkin
 with k = 1, the full-order model on the 64×64 grid), then re-evaluates each checkpoint with Hydra
@@ -9,11 +10,11 @@ multiruns of `python -m lnf.evaluate`:
 
 - long horizons: 20× and 200× the training horizon (50 s and 500 s at a 0.05 s step), energy drift and
   vpt per method and integrator (200×: sampled every 0.5 s, integrated at 0.05 s);
-- high energy: the scene's release cases (`Scene.stability_cases()`, skipped with a note on a scene that has
-  none): on the pendulum θ0 = 0.5π (edge of the training range) … 0.99π at rest, and one rotating pendulum
-  above the separatrix (θ0 = 0, θ̇0 = 7 rad/s); both links of the double pendulum at θ0, the bump's pendulum
-  as the pendulum's, the cantilever released at rest from tip deflections 0.15 m (edge of the training
-  range) … 0.4 m;
+- high energy: the scene's release cases (`Scene.stability_cases()`; skipped, with a note in the output and
+  in summary.md, on a scene that has none): on the pendulum θ0 = 0.5π (edge of the training range) … 0.99π
+  at rest, and one rotating pendulum above the separatrix (θ0 = 0, θ̇0 = 7 rad/s); both links of the double
+  pendulum at θ0, the bump's pendulum as the pendulum's, the cantilever released at rest from tip deflections
+  0.15 m (edge of the training range) … 0.4 m;
 - large time steps: dt = 0.05 … 0.8 s until each method and integrator fails (a trajectory diverges, or
   its error exceeds max(2 × its own dt = 0.05 error, 0.05));
 - resolution transfer: trained on 25 % of 32×32, evaluated on 16², 64², 128² and 4096 random points.
@@ -46,6 +47,19 @@ INLINE_STATE_SIZE = 8  # larger full-order states (the elastic mesh) go to lnf.e
 def stress_cases(study: S.Study) -> Optional[StabilityCases]:
     """The scene's high-energy release cases (``Scene.stability_cases()``), or None: no high-energy part."""
     return study.scene_object().stability_cases()
+
+
+def skipped_high_energy(study: S.Study) -> str:
+    """Why the study has no high-energy part (the scene declares no release cases), and what would add it: "no
+    high-energy part: <why>; <what to define>"."""
+    scene = study.scene_object()
+    cases = "return a lnf.scenes.StabilityCases (the levels, their label, the edge of the training range) from " \
+            "the scene's stability_cases() to run them"
+    if scene.capabilities()["release_at_rest"]:
+        return (f"no high-energy part: scene {study.scene!r} defines released_at_rest() but no stability_cases(), "
+                f"so the study does not know which release amplitudes lie beyond its training range; {cases}")
+    return (f"no high-energy part: scene {study.scene!r} defines neither released_at_rest() nor stability_cases(); "
+            f"define released_at_rest(amplitude) and {cases}")
 
 
 def initial_state_arguments(study: S.Study, scene: Any, cases: StabilityCases,
@@ -87,8 +101,7 @@ def evaluations(study: S.Study, ckpts: dict[str, Path]) -> None:
     scene = study.scene_object()
     cases = stress_cases(study)
     if cases is None:
-        print(f"[{study.name}] no high-energy part: scene {study.scene!r} declares no stability_cases() "
-              "(see lnf.scenes.Scene.stability_cases)", flush=True)
+        print(f"[{study.name}] {skipped_high_energy(study)}", flush=True)
     expensive = scene.expensive_reference
     before = len(study.rows)
     for integ in ("implicit_midpoint", "rk4"):
@@ -133,6 +146,14 @@ def evaluations(study: S.Study, ckpts: dict[str, Path]) -> None:
                            {**lab, "study": "resolution"})
     for row in study.rows[before:]:
         row["method"] = by_path[str(row["ckpt_path"])]
+
+
+def grid_name(row: dict, dim: int) -> str:
+    """The evaluation grid of a resolution-transfer row: "64²" (a uniform grid of a 2-D body; "64 points" in 1-D,
+    "64³" in 3-D) or "random"."""
+    if row.get("grid.kind") != "uniform":
+        return "random"
+    return S.per_axis(row["grid.resolution"], dim) + (" points" if dim == 1 else "")
 
 
 def _inline(state: Sequence[float]) -> str:
@@ -223,9 +244,14 @@ def plot(study: S.Study, rows: list[dict]) -> Path:
         error_lines(ax, rows, combos, "high_energy", _level)
         ax.axvspan(0, cases.train_edge, color="0.9", label=cases.train_text)
         ax.set_xlabel(cases.xlabel)
-    ax.set_ylabel("field_rel_l2 over 5 s (× = diverged, drawn at 10)")
-    ax.set_yscale("log")
-    ax.legend(fontsize=7)
+        ax.set_ylabel("field_rel_l2 over 5 s (× = diverged, drawn at 10)")
+        ax.set_yscale("log")
+        ax.legend(fontsize=7)
+    else:  # nothing to draw: say why on the panel
+        ax.text(0.5, 0.5, "skipped: the scene declares no\nstability_cases() (its release amplitudes)",
+                ha="center", va="center", transform=ax.transAxes, fontsize=9)
+        ax.set_xticks([])
+        ax.set_yticks([])
     ax.set_title("High energy, beyond the training range", fontsize=9)
 
     ax = axes[1, 0]
@@ -239,10 +265,11 @@ def plot(study: S.Study, rows: list[dict]) -> Path:
 
     ax = axes[1, 1]
     labels = []
+    dim = study.scene_object().body_dim
     for k, m in enumerate(methods(study)):
         sel = [r for r in rows if r.get("study") == "resolution" and r["method"] == m]
         sel = sorted(sel, key=lambda r: (r.get("grid.kind") == "random", int(r.get("grid.resolution", 0) or 0)))
-        names = [f"{r['grid.resolution']}²" if r.get("grid.kind") == "uniform" else "4096 random" for r in sel]
+        names = [grid_name(r, dim).replace("random", "4096 random") for r in sel]
         labels = labels or names
         ax.bar(np.arange(len(sel)) + (k - 1.5) * 0.2, [float(r["field_rel_l2/all/median"]) for r in sel], 0.2,
                color=S.COLORS[m], label=S.LABELS[m])
@@ -258,7 +285,8 @@ def plot(study: S.Study, rows: list[dict]) -> Path:
 def summary(study: S.Study, rows: list[dict]) -> Path:
     cases = stress_cases(study)
     expensive = study.scene_object().expensive_reference
-    highest = f"{cases.levels[-1]:g}: {cases.xlabel}" if cases else "none"
+    levels = sorted({_level(r) for r in rows if r.get("study") == "high_energy"})  # smoke runs the first two only
+    highest = f"{levels[-1]:g}: {cases.xlabel}" if cases and levels else "none"
     table = []
     for m in methods(study):
         for integ in INTEGRATORS[m]:
@@ -280,23 +308,27 @@ def summary(study: S.Study, rows: list[dict]) -> Path:
                 "err_rot": rot[0]["field_rel_l2/all/median"] if rot else "",
                 "max_dt": failure_dt(dts) if dts else "",
             })
-    res = []
+    res, grids = [], []
+    dim = study.scene_object().body_dim
     for m in methods(study):
         row = {"method": S.LABELS[m]}
-        for r in rows:
-            if r.get("study") == "resolution" and r["method"] == m:
-                key = f"{r['grid.resolution']}²" if r.get("grid.kind") == "uniform" else "random"
-                row[key] = r["field_rel_l2/all/median"]
+        for r in sorted((r for r in rows if r.get("study") == "resolution" and r["method"] == m),
+                        key=lambda r: (r.get("grid.kind") == "random", int(r.get("grid.resolution", 0) or 0))):
+            key = grid_name(r, dim)
+            row[key] = r["field_rel_l2/all/median"]
+            grids += [key] if key not in grids else []
         res.append(row)
+    columns = [("method", "method"), ("integrator", "integrator"), ("drift20", "energy drift 20×"),
+               ("vpt20", "vpt 20× [s]"), ("drift200", "energy drift 200×"), ("vpt200", "vpt 200× [s]")]
+    if cases is not None:  # without release cases the high-energy columns would stay empty
+        columns += [("err_099", f"err at the highest level ({highest})"), ("err_rot", "err rotation")]
+    skipped = "" if cases else skipped_high_energy(study)
     text = [f"# Stability study ({study.scene}, {study.mode} settings)\n\n",
             f"Machine: {study.machine()}. Command: `{study.command()}`.\n\n",
-            S.markdown_table(table, [("method", "method"), ("integrator", "integrator"),
-                                     ("drift20", "energy drift 20×"), ("vpt20", "vpt 20× [s]"),
-                                     ("drift200", "energy drift 200×"), ("vpt200", "vpt 200× [s]"),
-                                     ("err_099", f"err at the highest level ({highest})"), ("err_rot", "err rotation"),
-                                     ("max_dt", "largest ok dt [s]")]),
+            f"{skipped[:1].upper()}{skipped[1:]}.\n\n" if skipped else "",
+            S.markdown_table(table, columns + [("max_dt", "largest ok dt [s]")]),
             "\nResolution transfer (field_rel_l2, all, median):\n\n",
-            S.markdown_table(res, [("method", "method")] + [(k, k) for k in ("16²", "64²", "128²", "random")])]
+            S.markdown_table(res, [("method", "method")] + [(k, k) for k in grids])]
     return S.write_text_atomic(study.out / "summary.md", "".join(text))
 
 

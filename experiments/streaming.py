@@ -211,7 +211,7 @@ def main() -> None:
         MemoryCgroup(limit).remove()
     except (OSError, RuntimeError) as exc:
         sys.exit(f"streaming.py needs a writable memory cgroup to place the limit ({exc}); run it as root on a "
-                 f"machine with cgroups, or see the README for the numbers measured on ours")
+                 f"machine with cgroups, or see docs/scaling.md for the numbers measured on ours")
     path, n_train = make_dataset(args.gib, args.data_dir)
     rows = [run_child(args, path, n_train, "lazy", 0, limit),
             run_child(args, path, n_train, "lazy", 2, limit),

@@ -4,8 +4,9 @@ Each study script runs `python -m lnf.train -m ...` (and `python -m lnf.evaluate
 multiruns into ``outputs/studies/<study>/<sweep>/<job>/``, collects every job's ``metrics.json`` with
 its overrides into one CSV, and draws its charts from that CSV. A sweep whose jobs all finished with the
 same command is reused (delete the folder or pass --fresh to rerun it). Every study takes
-``--scene`` (any ``conf/experiment/<scene>.yaml``), ``--full`` (the full study: the default model size
-and training budget) and ``--smoke`` (tiny settings, for the test suite).
+``--scene`` (any ``conf/experiment/<scene>.yaml``, or ``<DIR>/experiment/<scene>.yaml`` of a config folder of
+your own given with ``--config-dir DIR``, as ``python -m lnf.train --config-dir DIR`` takes it), ``--full`` (the
+full study: the default model size and training budget) and ``--smoke`` (tiny settings, for the test suite).
 
 No study names a scene: what a study does on a scene it asks the scene object, built from the composed
 experiment config (:meth:`Study.scene_object`): which baselines can run it (``Scene.baselines()``), whether
@@ -30,11 +31,12 @@ from typing import Any, Iterable, Optional, Sequence
 
 import numpy as np
 
-from lnf.training.callbacks import write_json_atomic
-
 ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:  # `python experiments/<study>.py` from any folder imports this checkout's lnf
+    sys.path.insert(0, str(ROOT))
+CONF = ROOT / "conf"
 
-# The methods compared in every chart: label → overrides that select them (DESIGN.md §6 baselines)
+# The methods compared in every chart: label → overrides that select them (docs/method.md §7.5)
 METHODS: dict[str, list[str]] = {
     "lnf": [],
     "latent_mlp": ["dynamics=latent_mlp"],
@@ -65,6 +67,11 @@ class Study:
     out: Path
     threads: int
     fresh: bool = False
+    #: the user's Hydra config folder (absolute), searched after conf/ as ``--config-dir`` makes Hydra do; or None
+    config_dir: Optional[Path] = None
+    #: run the multiruns one after another in one worker process (see :class:`JobWorker`); False: a fresh
+    #: `python -m <entry>` process each (--fresh-processes)
+    one_process: bool = True
     rows: list[dict[str, Any]] = field(default_factory=list)
     started: float = field(default_factory=time.perf_counter)
     _scene: Any = field(default=None, init=False, repr=False, compare=False)
@@ -105,22 +112,30 @@ class Study:
         model/pod) does not have: they are deleted, since `+experiment=<scene>` merges them into any choice."""
         from omegaconf import OmegaConf
 
-        own = OmegaConf.load(ROOT / "conf" / f"{config}.yaml")
+        own = OmegaConf.load(config_file(config, self.config_dir))
         return sorted(set(self.experiment().get(node) or {}) - set(own))
 
     def experiment(self) -> Any:
-        """The scene's experiment config, conf/experiment/<scene>.yaml, as written (not composed)."""
+        """The scene's experiment config, ``experiment/<scene>.yaml`` of conf/ or of the config dir, as written
+        (not composed)."""
         from omegaconf import OmegaConf
 
-        return OmegaConf.load(ROOT / "conf" / "experiment" / f"{self.scene}.yaml")
+        return OmegaConf.load(experiment_file(self.scene, self.config_dir))
+
+    def hydra_args(self) -> list[str]:
+        """``--config-dir DIR`` for `python -m lnf.train` and `python -m lnf.evaluate` (none without a config dir)."""
+        return [] if self.config_dir is None else ["--config-dir", str(self.config_dir)]
 
     def composed(self) -> Any:
-        """The training config as `python -m lnf.train +experiment=<scene>` composes it, with its `hydra` node
-        (`hydra.runtime.choices` names the option chosen in each config group)."""
+        """The training config as `python -m lnf.train [--config-dir DIR] +experiment=<scene>` composes it, with its
+        `hydra` node (`hydra.runtime.choices` names the option chosen in each config group)."""
         from hydra import compose, initialize_config_dir
 
-        with initialize_config_dir(str(ROOT / "conf"), version_base=None):
-            return compose("train", overrides=[f"+experiment={self.scene}"], return_hydra_config=True)
+        overrides = [f"+experiment={self.scene}"]
+        if self.config_dir is not None:  # what --config-dir does: the folder is searched after conf/
+            overrides.append(f"hydra.searchpath=['file://{self.config_dir}']")
+        with initialize_config_dir(str(CONF), version_base=None):
+            return compose("train", overrides=overrides, return_hydra_config=True)
 
     def scene_object(self) -> Any:
         """The scene of the study's experiment (a :class:`lnf.scenes.Scene`), built once from the composed
@@ -138,10 +153,16 @@ class Study:
         return self.scene == default_experiment()
 
     def command(self) -> str:
-        """The command line that reruns this study (its mode and scene), as summaries and captions print it."""
+        """The command line that reruns this study (its mode, config dir and scene) from the repository root, as
+        summaries and captions print it; with a config dir, the PYTHONPATH that imports the scene's module."""
         mode = "" if self.mode == "reduced" else f" --{self.mode}"
-        scene = "" if self.is_default_scene() else f" --scene {self.scene}"
-        return f"python experiments/{self.name}.py{mode}{scene}"
+        if self.config_dir is None:
+            scene = "" if self.is_default_scene() else f" --scene {self.scene}"
+            return f"python experiments/{self.name}.py{mode}{scene}"
+        path = [_shown(Path(p)) for p in absolute_pythonpath(os.environ.get("PYTHONPATH", "")).split(os.pathsep) if p]
+        env = f"PYTHONPATH={os.pathsep.join(path)} " if path else ""
+        return (f"{env}python experiments/{self.name}.py{mode} --config-dir {_shown(self.config_dir)} "
+                f"--scene {self.scene}")
 
     def supports(self, name: str) -> bool:
         """Whether method `name` can run this study's scene, as the scene declares (``Scene.baselines()``; a
@@ -153,7 +174,7 @@ class Study:
                  label: Optional[dict[str, Any]] = None) -> list[dict[str, Any]]:
         """Run (or reuse) one Hydra multirun into out/<sweep>; returns its rows (also kept in self.rows)."""
         folder = self.out / sweep
-        cmd = [sys.executable, "-m", entry, "-m", *overrides, f"hydra.sweep.dir={folder}",
+        cmd = [sys.executable, "-m", entry, *self.hydra_args(), "-m", *overrides, f"hydra.sweep.dir={folder}",
                "hydra.sweep.subdir=${hydra.job.num}"]
         stamp = folder / "command.json"
         if self.fresh and folder.exists():
@@ -164,16 +185,20 @@ class Study:
             if folder.exists():
                 shutil.rmtree(folder)
             folder.mkdir(parents=True)
-            print(f"[{self.name}] {sweep}: python -m {entry} -m {' '.join(overrides)}", flush=True)
+            print(f"[{self.name}] {sweep}: python -m {entry} {' '.join(self.hydra_args() + ['-m'])} "
+                  f"{' '.join(overrides)}", flush=True)
             t0 = time.perf_counter()
-            env = {**os.environ, "HYDRA_FULL_ERROR": "1", "LNF_ROOT": str(ROOT)}
             log = folder / "multirun.log"
-            with open(log, "w") as fh:
-                proc = subprocess.run(cmd, cwd=ROOT, env=env, stdout=fh, stderr=subprocess.STDOUT)
-            if proc.returncode != 0:
+            if self.one_process:
+                returncode = run_in_worker(entry, cmd[3:], log)
+            else:
+                with open(log, "w") as fh:
+                    returncode = subprocess.run(cmd, cwd=ROOT, env=job_environment(), stdout=fh,
+                                                stderr=subprocess.STDOUT).returncode
+            if returncode != 0:
                 tail = log.read_text()[-3000:]
-                raise RuntimeError(f"sweep {sweep} failed (exit {proc.returncode}); log {log}:\n{tail}")
-            write_json_atomic(stamp, cmd[1:])
+                raise RuntimeError(f"sweep {sweep} failed (exit {returncode}); log {log}:\n{tail}")
+            _write_json_atomic(stamp, cmd[1:])
             print(f"[{self.name}] {sweep}: done in {time.perf_counter() - t0:.0f} s", flush=True)
         rows = collect(folder, sweep, label)
         self.rows += rows
@@ -195,6 +220,143 @@ class Study:
             print(f"  wrote {p}")
 
 
+class JobWorker:
+    """One Python process, started in the repository root with :func:`job_environment`, that runs the study's
+    multiruns one after another as `python -m <entry> <args>` would (``runpy`` runs the entry module as
+    ``__main__``), each with its output in its own log file.
+
+    Hydra already runs a multirun's jobs one after another in one process; the worker does the same across the
+    multiruns of a study, so that torch, Lightning and Hydra are imported once (about 5 s a process on 2 cores)
+    instead of once per multirun. A multirun that fails ends the worker; the next one starts a fresh one. So does
+    a source file the worker has loaded (lnf's, your scene's) that changed after it started: it would otherwise mix
+    the old modules with the new entry module."""
+
+    def __init__(self) -> None:
+        here = str(Path(__file__).resolve().parent)
+        # studylib is imported from experiments/, which then leaves the path: the jobs see the path `python -m` gives
+        code = (f"import sys; sys.path.insert(0, {here!r}); import studylib; sys.path.remove({here!r}); "
+                "studylib._worker_loop()")
+        self.proc = subprocess.Popen([sys.executable, "-c", code], cwd=ROOT, env=job_environment(),
+                                     stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+
+    def alive(self) -> bool:
+        return self.proc.poll() is None
+
+    def run(self, entry: str, args: Sequence[str], log: Path) -> Optional[int]:
+        """Run `python -m <entry> <args>` in the worker, its output into `log`; returns its exit status, or None
+        when the worker found its sources changed (it has ended: run it in a fresh one)."""
+        self.proc.stdin.write(json.dumps({"module": entry, "args": list(args), "log": str(log)}) + "\n")
+        self.proc.stdin.flush()
+        reply = self.proc.stdout.readline()
+        if not reply:  # the worker died (killed, out of memory): its exit status
+            self.proc.wait()
+            return self.proc.returncode or 1
+        answer = json.loads(reply)
+        if answer.get("stale"):
+            self.close()
+            return None
+        code = int(answer["returncode"])
+        if code != 0:
+            self.close()
+        return code
+
+    def close(self) -> None:
+        if self.alive():
+            self.proc.stdin.close()
+            try:
+                self.proc.wait(timeout=60)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+
+
+_WORKER: Optional[JobWorker] = None
+
+
+def _worker() -> JobWorker:
+    """The process's job worker, started on first use (and again after it ended)."""
+    global _WORKER
+    if _WORKER is None or not _WORKER.alive():
+        import atexit
+
+        if _WORKER is None:
+            atexit.register(lambda: _WORKER is not None and _WORKER.close())
+        _WORKER = JobWorker()
+    return _WORKER
+
+
+def run_in_worker(entry: str, args: Sequence[str], log: Path) -> int:
+    """`python -m <entry> <args>` run by the job worker (a fresh one if its sources changed), its output in `log`;
+    its exit status."""
+    for _ in range(3):
+        code = _worker().run(entry, args, log)
+        if code is not None:
+            return code
+    raise RuntimeError(f"python -m {entry}: the source files keep changing while the study starts its job worker")
+
+
+def _sources_changed(since: float, entry: str) -> bool:
+    """Whether a module file the worker has loaded from outside the Python installation (lnf's, a scene's), or the
+    entry module's file, changed after `since` (time.time())."""
+    import importlib.util
+    import sysconfig
+
+    installed = tuple({sysconfig.get_paths()[key] for key in ("stdlib", "platstdlib", "purelib", "platlib")})
+    spec = importlib.util.find_spec(entry)
+    files = [getattr(module, "__file__", None) for module in list(sys.modules.values())]
+    for path in [*files, spec.origin if spec else None]:
+        if path and not path.startswith(installed):
+            try:
+                if os.stat(path).st_mtime > since:
+                    return True
+            except OSError:  # a file that has gone: the module stays as it was loaded
+                continue
+    return False
+
+
+def _worker_loop() -> None:
+    """The worker's side of :class:`JobWorker`: one JSON request a line on stdin ({"module", "args", "log"}), one
+    reply a line ({"returncode"}, or {"stale": true} and the worker ends) on the stdout it started with; file
+    descriptors 1 and 2 go to the request's log while it runs, to /dev/null between requests."""
+    import runpy
+    import traceback
+
+    from hydra.core.global_hydra import GlobalHydra
+
+    started = time.time()
+    reply = os.fdopen(os.dup(1), "w")
+    null = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(null, 1)
+    for line in sys.stdin:
+        request = json.loads(line)
+        if _sources_changed(started, request["module"]):
+            reply.write(json.dumps({"stale": True}) + "\n")
+            reply.flush()
+            return
+        log = os.open(request["log"], os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os.dup2(log, 1)
+        os.dup2(log, 2)
+        os.close(log)
+        sys.argv = [request["module"], *request["args"]]
+        code = 0
+        try:
+            GlobalHydra.instance().clear()
+            runpy.run_module(request["module"], run_name="__main__", alter_sys=True)
+        except SystemExit as exit_:
+            code = exit_.code if isinstance(exit_.code, int) else 0 if exit_.code is None else 1
+        except BaseException:  # noqa: BLE001 - reported in the log, and as the exit status
+            traceback.print_exc()
+            code = 1
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os.dup2(null, 1)
+        os.dup2(null, 2)
+        reply.write(json.dumps({"returncode": code}) + "\n")
+        reply.flush()
+
+
 def default_experiment() -> str:
     """The experiment a study runs without ``--scene``: the one named like the default ``scene`` of the training
     config (conf/train.yaml), i.e. what ``python -m lnf.train`` trains without overrides."""
@@ -206,28 +368,99 @@ def default_experiment() -> str:
     raise RuntimeError("conf/train.yaml names no default scene (defaults: - scene: <name>)")
 
 
+def config_file(config: str, config_dir: Optional[Path] = None) -> Path:
+    """The file of config `config` (e.g. ``model/pod`` or ``experiment/<scene>``) that Hydra composes: conf/'s,
+    else the config dir's (``--config-dir`` searches its folder after conf/)."""
+    for folder in (CONF, config_dir):
+        if folder is not None and (folder / f"{config}.yaml").is_file():
+            return folder / f"{config}.yaml"
+    where = " or ".join(str(f / f"{config}.yaml") for f in (CONF, config_dir) if f is not None)
+    raise FileNotFoundError(f"no config {config}: looked for {where}")
+
+
+def experiment_file(scene: str, config_dir: Optional[Path] = None) -> Path:
+    """``experiment/<scene>.yaml`` of conf/ or of the config dir (see :func:`config_file`)."""
+    return config_file(f"experiment/{scene}", config_dir)
+
+
+def absolute_pythonpath(value: str) -> str:
+    """A PYTHONPATH value with each relative entry made absolute against the current folder (the study's jobs run
+    in the repository root, where a relative entry would name another folder)."""
+    return os.pathsep.join(str(Path(p).resolve()) for p in value.split(os.pathsep))  # "" (the current folder) too
+
+
+def job_environment() -> dict[str, str]:
+    """The environment of the study's jobs, which run in the repository root: this one, with the caller's
+    relative PYTHONPATH entries and LNF_DATA_DIR made absolute (against the caller's folder), LNF_ROOT = the
+    repository root and full Hydra errors."""
+    env = {**os.environ, "HYDRA_FULL_ERROR": "1", "LNF_ROOT": str(ROOT)}
+    if env.get("PYTHONPATH"):
+        env["PYTHONPATH"] = absolute_pythonpath(env["PYTHONPATH"])
+    if env.get("LNF_DATA_DIR"):
+        env["LNF_DATA_DIR"] = str(Path(env["LNF_DATA_DIR"]).resolve())
+    return env
+
+
+def _shown(path: Path) -> str:
+    """`path` as a command run from the repository root names it: relative inside the repository, else absolute."""
+    path = Path(path).resolve()
+    return str(path.relative_to(ROOT)) if path.is_relative_to(ROOT) else str(path)
+
+
 def parse_args(name: str, description: str, argv: Optional[Sequence[str]] = None,
                extra: Optional[callable] = None) -> tuple[Study, argparse.Namespace]:
+    """The study's command line: ``--config-dir``, ``--scene``, ``--full``/``--smoke``, ``--out``, ``--threads``,
+    ``--fresh`` and the study's own options (`extra` adds them to the parser)."""
     p = argparse.ArgumentParser(description=description, formatter_class=argparse.RawDescriptionHelpFormatter)
     default = default_experiment()
+    p.add_argument("--config-dir", type=Path, default=None, metavar="DIR",
+                   help="a Hydra config folder of your own (DIR/scene/<name>.yaml, DIR/experiment/<name>.yaml), "
+                        "searched after conf/ as `python -m lnf.train --config-dir DIR` does; the scene's module "
+                        "must be importable (PYTHONPATH)")
     p.add_argument("--scene", default=default,
-                   help=f"experiment config of the scene (conf/experiment/<scene>.yaml; default {default})")
+                   help=f"experiment config of the scene (conf/experiment/<scene>.yaml or DIR/experiment/<scene>.yaml; "
+                        f"default {default})")
     g = p.add_mutually_exclusive_group()
     g.add_argument("--full", action="store_true", help="the full study (default model size and training budget)")
     g.add_argument("--smoke", action="store_true", help="tiny settings (the test suite's smoke test)")
     p.add_argument("--out", type=Path, default=None, help="output folder (default outputs/studies/<study>[-<mode>])")
     p.add_argument("--threads", type=int, default=2, help="torch threads per job")
     p.add_argument("--fresh", action="store_true", help="rerun sweeps even if their results exist")
+    p.add_argument("--fresh-processes", action="store_true",
+                   help="run each multirun in a fresh `python -m lnf.train` (or lnf.evaluate) process; default: one "
+                        "after another in one worker process, which imports torch and Lightning once")
     if extra is not None:
         extra(p)
     args = p.parse_args(argv)
-    if not (ROOT / "conf" / "experiment" / f"{args.scene}.yaml").is_file():
-        p.error(f"--scene {args.scene!r}: no conf/experiment/{args.scene}.yaml")
+    config_dir = None
+    if args.config_dir is not None:
+        config_dir = args.config_dir.expanduser().resolve()
+        if not config_dir.is_dir():
+            p.error(f"--config-dir {args.config_dir}: no such folder ({config_dir})")
+    try:
+        experiment_file(args.scene, config_dir)
+    except FileNotFoundError:
+        if config_dir is None:
+            p.error(f"--scene {args.scene!r}: no {CONF / 'experiment' / f'{args.scene}.yaml'} (a scene of your own: "
+                    f"give its config folder with --config-dir DIR, which holds DIR/experiment/{args.scene}.yaml)")
+        p.error(f"--scene {args.scene!r}: neither {CONF / 'experiment' / f'{args.scene}.yaml'} nor "
+                f"{config_dir / 'experiment' / f'{args.scene}.yaml'} exists")
     mode = "full" if args.full else "smoke" if args.smoke else "reduced"
-    out = args.out or ROOT / "outputs" / "studies" / (name if mode == "reduced" else f"{name}-{mode}")
+    out = args.out.expanduser().resolve() if args.out else \
+        ROOT / "outputs" / "studies" / (name if mode == "reduced" else f"{name}-{mode}")
     if args.scene != default and args.out is None:
         out = out.with_name(f"{out.name}-{args.scene}")
-    return Study(name=name, scene=args.scene, mode=mode, out=out, threads=args.threads, fresh=args.fresh), args
+    study = Study(name=name, scene=args.scene, mode=mode, out=out, threads=args.threads, fresh=args.fresh,
+                  config_dir=config_dir, one_process=not args.fresh_processes)
+    try:
+        scene = study.scene_object()
+    except (ImportError, ValueError) as err:  # a module not on PYTHONPATH, a bad scene parameter
+        p.error(f"--scene {args.scene}: its scene cannot be built: {err}")
+    if not scene.capabilities()["simulator"]:
+        p.error(f"--scene {args.scene}: scene {type(scene).__qualname__} has no simulator (simulate() and "
+                f"sample_initial_states()); the studies generate each mode's dataset with it and re-simulate the "
+                f"reference at other times, grids and initial states")
+    return study, args
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -271,6 +504,7 @@ def collect(folder: Path, sweep: str, label: Optional[dict[str, Any]] = None) ->
 
 
 def _write_json_atomic(path: Path, payload: Any) -> None:
+    """JSON written to a temporary name in the same folder, then renamed."""
     tmp = path.with_name(path.name + ".tmp")
     tmp.write_text(json.dumps(payload, indent=1))
     os.replace(tmp, path)
@@ -345,6 +579,11 @@ def log_axes(ax: Any, legend_size: int = 7, x_base: float = 10) -> None:
 
 def caption(study: Study) -> str:
     return f"{study.command()} · {study.mode} settings · {study.machine()}"
+
+
+def per_axis(n: Any, dim: int) -> str:
+    """`n` per axis of a `dim`-D body as charts and summaries write it: "8²" in 2-D, "8³" in 3-D, "8" in 1-D."""
+    return f"{n}" + {1: "", 2: "²", 3: "³"}.get(dim, f"^{dim}")
 
 
 def fmt(x: Any, digits: int = 3) -> str:

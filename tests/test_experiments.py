@@ -1,5 +1,6 @@
 """Smoke tests: the benchmark scripts in experiments/ run end to end with tiny settings."""
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -238,6 +239,94 @@ def test_stability_study_smoke_on_the_actuated_scene(studies):
     assert (out / "stability.png").stat().st_size > 0
 
 
+# ---------------------------------------------------------------------------------------------------
+# a scene of your own (docs/own_system.md, "Benchmark studies on your scene"): the worked example of examples/,
+# its module on PYTHONPATH and its config folder given with --config-dir, with no change to lnf/ or experiments/
+# ---------------------------------------------------------------------------------------------------
+EXAMPLES = ROOT / "examples"
+
+
+def test_a_study_takes_a_config_dir_and_the_relative_paths_of_the_folder_it_is_run_from(tmp_path, monkeypatch,
+                                                                                          capsys):
+    sys.path.insert(0, str(ROOT / "experiments"))
+    import studylib as S
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("PYTHONPATH", os.path.relpath(EXAMPLES, tmp_path))
+    monkeypatch.setenv("LNF_DATA_DIR", "data")
+    monkeypatch.syspath_prepend(str(EXAMPLES))  # what PYTHONPATH does for the study's own process
+    study, _ = S.parse_args("pareto", "", ["--config-dir", os.path.relpath(EXAMPLES / "conf", tmp_path),
+                                           "--scene", "vibrating_string", "--smoke", "--out", "out"])
+    assert study.config_dir == EXAMPLES / "conf" and study.out == (tmp_path / "out").resolve()
+    assert study.scene_object().body_dim == 1 and not study.supports("full_order")
+    assert study.command() == ("PYTHONPATH=examples python experiments/pareto.py --smoke --config-dir examples/conf "
+                               "--scene vibrating_string")  # reruns it from the repository root
+    env = S.job_environment()  # the jobs run in the repository root: the caller's relative paths made absolute
+    assert env["PYTHONPATH"] == str(EXAMPLES) and env["LNF_DATA_DIR"] == str((tmp_path / "data").resolve())
+    assert S.config_file("model/pod", study.config_dir) == ROOT / "conf" / "model" / "pod.yaml"
+
+    with pytest.raises(SystemExit):
+        S.parse_args("pareto", "", ["--config-dir", str(EXAMPLES / "conf"), "--scene", "nowhere"])
+    err = capsys.readouterr().err
+    assert str(ROOT / "conf" / "experiment" / "nowhere.yaml") in err
+    assert str(EXAMPLES / "conf" / "experiment" / "nowhere.yaml") in err
+    with pytest.raises(SystemExit):  # a scene of your own without its config folder
+        S.parse_args("pareto", "", ["--scene", "vibrating_string"])
+    assert "--config-dir" in capsys.readouterr().err
+
+
+def test_pareto_stability_and_scenes_run_the_vibrating_string_from_its_own_folder(tmp_path):
+    """Started from a folder that is not the repository, as a user would: the example's module on a relative
+    PYTHONPATH, a relative data dir (LNF_DATA_DIR) and relative output folders, which the studies' jobs (run in the
+    repository root) must see as the caller meant them; the config folder absolute for one study, relative for the
+    other. The string is a 1-D body: no nodal full-order model; it defines released_at_rest() but no
+    stability_cases(), so the stability study skips its high-energy part and says why."""
+    work = tmp_path / "work"
+    work.mkdir()
+    env = {**os.environ, "PYTHONPATH": os.path.relpath(EXAMPLES, work), "LNF_DATA_DIR": "data",
+           "WANDB_MODE": "offline"}
+
+    def run(script: str, *args: str) -> str:
+        proc = subprocess.run([sys.executable, str(ROOT / "experiments" / script), *args], cwd=work, env=env,
+                              capture_output=True, text=True, timeout=600)
+        assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+        return proc.stdout
+
+    scene = ["--scene", "vibrating_string", "--smoke", "--threads", "1"]
+    stdout = run("pareto.py", "--config-dir", str(EXAMPLES / "conf"), *scene, "--out", "pareto")
+    out = (work / "pareto").resolve()
+    rows = _csv(out / "pareto.csv")
+    assert _methods(rows) == {"lnf", "latent_mlp", "pod"}  # Scene.baselines(): no full-order model of a 1-D body
+    assert "full order left out" in stdout
+    assert {r["knob"] for r in rows} >= {"width", "k", "quadrature", "integrator", "tabulated"}
+    assert all(r["dir"].startswith(str(out)) for r in rows)  # the relative --out, as the caller meant it
+    assert list((work / "data").glob("vibratingstring-*.h5"))  # the relative LNF_DATA_DIR, too
+    summary = (out / "summary.md").read_text()
+    assert "Left out, as the scene's baselines() says they cannot run it: full order" in summary
+    assert "--config-dir examples/conf --scene vibrating_string" in summary and "PYTHONPATH=examples" in summary
+    assert (out / "pareto.png").stat().st_size > 0 and (out / "quadrature.png").stat().st_size > 0
+
+    stdout = run("stability.py", "--config-dir", os.path.relpath(EXAMPLES / "conf", work), *scene,
+                 "--out", "stability")
+    out = work / "stability"
+    rows = _csv(out / "stability.csv")
+    assert _methods(rows) == {"lnf", "latent_mlp", "pod"}
+    assert {r["study"] for r in rows} == {"train", "long", "dt", "resolution"}  # no high_energy rows
+    note = "defines released_at_rest() but no stability_cases()"
+    assert note in stdout and note in (out / "summary.md").read_text()
+    assert "| 8 points |" in (out / "summary.md").read_text()  # the 1-D grid of the resolution transfer
+    assert (out / "stability.png").stat().st_size > 0
+
+    # the acceptance measurements the string's declarations allow, on the Pareto study's width-16 model
+    run("scenes.py", "--config-dir", str(EXAMPLES / "conf"), "--scene", "vibrating_string", "--ckpt",
+        "pareto/lnf_width/0/checkpoints/last.ckpt", "--out", "scenes", "--max-modes", "2", "--bb-iterations", "10",
+        "--threads", "1")
+    result = json.loads((work / "scenes" / "results.json").read_text())
+    assert result["measurements"] == ["black_box", "modes"]
+    assert set(result["skipped"]) == {"speedup", "loads", "decay"} and len(result["pod"]) == 2
+    assert (work / "scenes" / "vpt.png").is_file() and (work / "scenes" / "modes.png").is_file()
+
+
 def test_stability_high_energy_states_per_scene():
     sys.path.insert(0, str(ROOT / "experiments"))
     import numpy as np
@@ -288,13 +377,46 @@ def test_scenes_script_measures_a_tiny_checkpoint(scene, tmp_path):
             "quadrature.order=4", "evaluation.long_steps=10", "evaluation.long_trajectories=1",
             "evaluation.max_reduction_points=64", f"paths.data_dir={tmp_path / 'data'}"]
     _run(["-m", "lnf.train", f"+experiment={scene}", "trainer=smoke", "logger=csv", *data, f"hydra.run.dir={run}"])
+    measure = "black_box" if scene == "double_pendulum" else "modes"  # both apply to both; one each keeps it short
     _run(["experiments/scenes.py", "--scene", scene, "--ckpt", str(run / "checkpoints" / "last.ckpt"),
-          "--out", str(tmp_path / "out"), "--max-modes", "2", "--bb-iterations", "10", "--threads", "1"])
+          "--out", str(tmp_path / "out"), "--max-modes", "2", "--bb-iterations", "10", "--threads", "1",
+          "--measure", measure])
     result = json.loads((tmp_path / "out" / "results.json").read_text())
+    assert result["measurements"] == [measure]
     if scene == "double_pendulum":
         assert {"ours", "black_box", "drift_ratio_median"} <= set(result) and (tmp_path / "out" / "vpt.png").is_file()
     else:
         assert len(result["pod"]) == 2 and len(result["oracle_projection"]) == 2
+
+
+def test_scenes_script_chooses_its_measurements_by_what_the_scene_declares():
+    """No scene names: the black box where baselines() allows it, POD modes where POD can run, the speed-up where the
+    reference is expensive, loads where the scene has controls, the free decay where it is not conservative."""
+    import numpy as np
+
+    sys.path[:0] = [str(ROOT / "experiments"), str(ROOT / "examples")]
+    import scenes
+    from vibrating_string import VibratingString
+
+    from lnf.scenes import ElasticCantilever, LiftedDoublePendulum
+
+    def allowed(scene):
+        return [m for m, why in scenes.applicable(scene).items() if why is None]
+
+    assert allowed(LiftedDoublePendulum()) == allowed(VibratingString()) == ["black_box", "modes"]
+    assert allowed(ElasticCantilever(mesh=(6, 3))) == ["black_box", "modes", "speedup"]
+    actuated = ElasticCantilever(mesh=(6, 3), damping=0.3, load_amplitude_range=(-0.6, 0.6),
+                                 load_frequency_range=(0.3, 0.7))
+    assert allowed(actuated) == ["modes", "speedup", "loads", "decay"]
+    assert "baselines()" in scenes.applicable(actuated)["black_box"]
+    # loads are set where the scene keeps them (the state's last entries), checked through controls()
+    states = actuated.sample_initial_states(3, np.random.default_rng(0))
+    moved = scenes.with_controls(actuated, states, np.tile([0.5, 1.2], (3, 1)))
+    assert np.array_equal(actuated.controls(moved), np.tile([0.5, 1.2], (3, 1)))
+    assert np.array_equal(moved[:, :-2], states[:, :-2])
+    training = actuated.controls(states)
+    assert np.all(scenes.unseen_load(training, None) > training.max(0))  # beyond the training range
+    assert scenes.unseen_load(training, [0.5, 1.2]).tolist() == [0.5, 1.2]
 
 
 @pytest.mark.parametrize("scene", ["elastic", "elastic_actuated"])
@@ -307,11 +429,14 @@ def test_scenes_script_measures_a_tiny_elastic_checkpoint(scene, tmp_path):
           "quadrature.order=[4,3]", "evaluation.long_steps=4", "evaluation.long_trajectories=1",
           f"paths.data_dir={tmp_path / 'data'}", f"hydra.run.dir={run}"])
     out = tmp_path / "out"
+    measure = ["speedup"] if scene == "elastic" else ["loads", "decay"]  # the black box and POD modes: the test above
     _run(["experiments/scenes.py", "--scene", scene, "--ckpt", str(run / "checkpoints" / "last.ckpt"),
-          "--out", str(out), "--threads", "1"])
+          "--out", str(out), "--threads", "1", "--measure", *measure])
     result = json.loads((out / "results.json").read_text())
+    assert result["measurements"] == measure
     if scene == "elastic":
         assert result["speedup"] > 0 and len(result["rom"]) == 3 and (out / "tip.png").is_file()
+        assert len(result["fom"]) == 5 and result["fom"][0]["step_factor"] == 1.0  # the FEM's own step, then larger
     else:
         # a 1-epoch model may diverge (nan); the decay itself is tested in tests/test_elastic.py (damping tests)
         assert "largest_energy_rise_per_sample_over_scale" in result["free_decay"] and (out / "decay.png").is_file()

@@ -1,0 +1,493 @@
+"""Every results table of README.md and docs/, rebuilt from its source files.
+
+A table lives in a Markdown file between two markers, and everything between them is generated::
+
+    <!-- results:pareto-elastic -->
+    | method, setting | ... |
+    ...
+    *Made on ..., by `python experiments/pareto.py --scene elastic` ...*
+    <!-- /results:pareto-elastic -->
+
+Its sources are committed under ``results/<name>/``: ``provenance.json`` (machine, date, command, commit) and the
+data, which is one of
+
+- a copy of the raw output of a study or run (``pareto.csv``, ``<study>.csv`` with the study's ``summary.md``, a
+  run's ``metrics.json``), from which the table is computed: ``python experiments/results_tables.py --collect``
+  copies it from ``outputs/`` after a study has run (raw ``outputs/`` is not committed);
+- ``table.csv``, the table's cells as a report gave them, for a table whose raw outputs are not on this machine.
+  Its ``provenance.json`` says ``"transcribed_from_docs": true``, and the table says so under it.
+
+Commands (from the repository root)::
+
+    python experiments/results_tables.py              # rewrite every table from results/
+    python experiments/results_tables.py --check      # exit 1 if a table differs from what its sources give
+    python experiments/results_tables.py --collect    # copy each study's raw outputs found under outputs/ first
+    python experiments/results_tables.py --collect pendulum_default=outputs/pendulum/runs/<run>   # a run's folder
+    python experiments/results_tables.py --list       # the tables, their sources and where they appear
+
+Files are rewritten atomically (a temporary file in the same folder, then a rename), and only when they change.
+The script needs only the standard library to render and check; ``--collect`` of a Pareto study imports
+``experiments/pareto.py``.
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import datetime as dt
+import json
+import os
+import platform
+import re
+import shutil
+import subprocess
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Optional
+
+ROOT = Path(__file__).resolve().parents[1]
+RESULTS = ROOT / "results"
+MARKDOWN = ["README.md", "docs"]  # files, or folders searched for *.md
+BEGIN = re.compile(r"^(?P<indent>[ \t]*)<!-- results:(?P<name>[A-Za-z0-9_.-]+) -->\s*$")
+END = "<!-- /results:{name} -->"
+FENCE = re.compile(r"^\s*(```|~~~)")
+MACHINE_2CORE = ("the project's CPU machine (Intel Xeon, 2 vCPUs, 24 GiB, no GPU; torch 2.13.0+cpu, "
+                 "2 torch threads)")
+MAX_COPY_BYTES = 4 << 20  # a raw file larger than this is not copied into results/
+
+
+class TableError(RuntimeError):
+    """A marker, a source file or a table that cannot be made; the message names the file and the table."""
+
+
+# ---------------------------------------------------------------------------------------------------
+# what each table is made from
+# ---------------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Spec:
+    """Where a table's raw outputs appear and how the table is computed from them.
+
+    kind:
+        ``pareto``: ``pareto.csv`` of a Pareto study, the most accurate point of each method (as the study's own
+        summary chooses it); ``study``: the ``table``-th Markdown table of the study's ``summary.md`` (the study's
+        own reduction of its CSV, which is copied beside it); ``metrics``: rows ``metrics`` (label, key) of a
+        run's ``metrics.json``; ``transcribed``: no raw outputs known, ``table.csv`` only.
+    raw: the folder of the raw outputs, relative to the repository (None: given on the command line, or none).
+    command: the command that makes them.
+    """
+
+    kind: str
+    command: str
+    raw: Optional[str] = None
+    table: int = 0
+    csv: Optional[str] = None
+    metrics: tuple[tuple[str, str], ...] = ()
+
+
+SCENES = ["pendulum", "double_pendulum", "bump", "elastic", "elastic_actuated"]
+
+
+def _study(name: str, scene: str, kind: str = "study", table: int = 0) -> Spec:
+    suffix = "" if scene == "pendulum" else f"-{scene}"
+    flag = "" if scene == "pendulum" else f" --scene {scene}"
+    return Spec(kind=kind, command=f"python experiments/{name}.py{flag}", raw=f"outputs/studies/{name}{suffix}",
+                table=table, csv=f"{name}.csv")
+
+
+PENDULUM_METRICS = (
+    ("`field_rel_l2/all/median`", "field_rel_l2/all/median"),
+    ("`field_rel_l2/in_horizon/median`", "field_rel_l2/in_horizon/median"),
+    ("`field_rel_l2/extrapolation/median` (t ≥ 2.5 s)", "field_rel_l2/extrapolation/median"),
+    ("`field_rel_l2/all/max`", "field_rel_l2/all/max"),
+    ("`projection_rel_l2/all/median` (the embedding's own floor)", "projection_rel_l2/all/median"),
+    ("`energy_rel_err/max` (m g ℓ units)", "energy_rel_err/max"),
+    ("`energy_drift_long/max` (1 000 steps)", "energy_drift_long/max"),
+    ("`vpt/median` [s]", "vpt/median"),
+    ("`rollout_seconds_per_trajectory`", "rollout_seconds_per_trajectory"),
+    ("training [s] · whole run [s]", "train_seconds|total_seconds"),
+    ("epochs run (of the budget)", "epochs_run|max_epochs"),
+)
+
+SPECS: dict[str, Spec] = {
+    **{f"pareto-{s}": _study("pareto", s, "pareto") for s in SCENES},
+    **{f"stability-{s}": _study("stability", s) for s in SCENES},
+    "stability-pendulum-resolution": _study("stability", "pendulum", table=1),
+    **{f"sparse_noisy-{s}": _study("sparse_noisy", s) for s in SCENES},
+    "model_size-pendulum": _study("model_size", "pendulum"),
+    "model_size-elastic": _study("model_size", "elastic"),
+    "cost_scaling-pendulum": _study("cost_scaling", "pendulum"),
+    "roofline-pendulum": _study("roofline", "pendulum"),
+    "pendulum_default": Spec("metrics", "python -m lnf.train +experiment=pendulum", metrics=PENDULUM_METRICS),
+    # the worked example of docs/own_system.md, a scene kept outside the package
+    **{f"{name}-vibrating_string": Spec(kind, f"PYTHONPATH=examples python experiments/{name}.py --config-dir examples/conf "
+                                              f"--scene vibrating_string", raw=f"outputs/studies/{name}-vibrating_string",
+                                        csv=f"{name}.csv")
+       for name, kind in [("pareto", "pareto"), ("stability", "study")]},
+}
+
+
+def spec_of(name: str, provenance: dict[str, Any]) -> Spec:
+    """The registered spec of a table, or a transcribed one made from its provenance."""
+    if name in SPECS:
+        return SPECS[name]
+    return Spec("transcribed", provenance.get("command", ""))
+
+
+# ---------------------------------------------------------------------------------------------------
+# formatting
+# ---------------------------------------------------------------------------------------------------
+def fmt(value: Any, digits: int = 3) -> str:
+    """A number as the studies print it (3 significant digits, "diverged" for inf/NaN); text as it is."""
+    if value is None or value == "":
+        return ""
+    if isinstance(value, bool):
+        return str(value).lower()
+    try:
+        x = float(value)
+    except (TypeError, ValueError):
+        return str(value)
+    if x != x or x in (float("inf"), float("-inf")):
+        return "diverged"
+    if isinstance(value, int) or (isinstance(value, str) and re.fullmatch(r"-?\d+", value.strip())):
+        return str(int(x))
+    return f"{x:.{digits}g}"
+
+
+def markdown_table(header: list[str], rows: list[list[str]]) -> list[str]:
+    def line(cells: list[str]) -> str:
+        return "| " + " | ".join(c.replace("|", "\\|").replace("\n", " ") for c in cells) + " |"
+
+    return [line(header), "|" + "---|" * len(header), *(line(r + [""] * (len(header) - len(r))) for r in rows)]
+
+
+def parse_markdown_tables(text: str) -> list[tuple[list[str], list[list[str]]]]:
+    """Every pipe table of a Markdown text: (header, rows), cells stripped."""
+    tables, block = [], []
+
+    def cells(line: str) -> list[str]:
+        inner = line.strip()[1:-1] if line.strip().endswith("|") else line.strip()[1:]
+        return [c.strip().replace("\\|", "|") for c in re.split(r"(?<!\\)\|", inner)]
+
+    for line in [*text.splitlines(), ""]:
+        if line.strip().startswith("|"):
+            block.append(line)
+            continue
+        if len(block) >= 2 and re.fullmatch(r"\|?(\s*:?-+:?\s*\|)+\s*:?-*:?\s*\|?", block[1].strip()):
+            tables.append((cells(block[0]), [cells(b) for b in block[2:]]))
+        block = []
+    return tables
+
+
+def provenance_line(name: str, prov: dict[str, Any], spec: Spec) -> str:
+    """The line under a table: machine, date, command(s), commit, note, where its sources are."""
+    commands = prov.get("command") or spec.command
+    commands = [commands] if isinstance(commands, str) else list(commands)
+    shown = "; ".join(f"`{c}`" for c in commands)
+    text = f"Made on {prov.get('machine') or 'an unrecorded machine'}"
+    text += f", {prov['date']}" if prov.get("date") else ""
+    text += f", by {shown}"
+    text += f", at commit {prov['commit']}" if prov.get("commit") else ""
+    text += "."
+    if prov.get("note"):
+        note = prov["note"].rstrip(".")
+        text += f" {note[:1].upper()}{note[1:]}."
+    text += f" Source: `results/{name}/`"
+    if prov.get("transcribed_from_docs"):
+        rerun = f"rerun `{commands[0]}`" if len(commands) == 1 else "rerun the commands above"
+        if spec.kind == "transcribed":
+            text += f" (transcribed from the run's report; {rerun} and update `results/{name}/table.csv` from its output)"
+        else:
+            collect = "--collect" if spec.raw else f"--collect {name}=<its output folder>"
+            text += (f" (transcribed from the run's report; {rerun} to regenerate from raw outputs, then "
+                     f"`python experiments/results_tables.py {collect}`)")
+    return f"*{text}.*"
+
+
+# ---------------------------------------------------------------------------------------------------
+# sources → table
+# ---------------------------------------------------------------------------------------------------
+def _read_json(path: Path) -> Any:
+    try:
+        return json.loads(path.read_text())
+    except FileNotFoundError:
+        raise TableError(f"{path.relative_to(ROOT)}: missing") from None
+    except json.JSONDecodeError as exc:
+        raise TableError(f"{path.relative_to(ROOT)}: not valid JSON ({exc})") from None
+
+
+def _parse(text: str) -> Any:
+    try:
+        return json.loads(text)
+    except (json.JSONDecodeError, ValueError):
+        return {"inf": float("inf"), "-inf": float("-inf"), "nan": float("nan")}.get(text, text)
+
+
+def read_study_csv(path: Path) -> list[dict[str, Any]]:
+    """A study's CSV as the study's own rows: parsed values, no key where a cell is empty."""
+    with open(path, newline="") as fh:
+        return [{k: _parse(v) for k, v in row.items() if v not in ("", None)} for row in csv.DictReader(fh)]
+
+
+def _pareto_rows(folder: Path, prov: dict[str, Any]) -> tuple[list[str], list[list[str]]]:
+    sys.path.insert(0, str(ROOT / "experiments"))
+    try:
+        import pareto  # the study's own choice of each method's most accurate point
+    finally:
+        sys.path.remove(str(ROOT / "experiments"))
+    rows = read_study_csv(folder / "pareto.csv")
+    best = pareto.best_of_each_method(rows, int(prov.get("body_dim", 2)))
+    header = ["method", "setting", "extrapolation error", "in-horizon error", "energy drift",
+              "latent rollout [s/traj]", "rollout + decoding [s/traj]", "training [s]"]
+    keys = [pareto.ERR, "field_rel_l2/in_horizon/median", "energy_drift/max", "rollout_seconds_per_trajectory",
+            pareto.COST, "train_seconds"]
+    return header, [[r["label"], r["setting"], *(fmt(r.get(k)) for k in keys)] for r in best]
+
+
+def table_of(name: str) -> tuple[list[str], list[list[str]], dict[str, Any], Spec]:
+    """(header, rows, provenance, spec) of table `name` from results/<name>/."""
+    folder = RESULTS / name
+    if not folder.is_dir():
+        raise TableError(f"results/{name}/: no such folder (a marker names table {name!r}, which has no sources)")
+    prov = _read_json(folder / "provenance.json")
+    spec = spec_of(name, prov)
+    if prov.get("transcribed_from_docs") or spec.kind == "transcribed":
+        path = folder / "table.csv"
+        if not path.is_file():
+            raise TableError(f"results/{name}/table.csv: missing")
+        with open(path, newline="") as fh:
+            lines = list(csv.reader(fh))
+        if not lines:
+            raise TableError(f"results/{name}/table.csv: empty")
+        return lines[0], lines[1:], prov, spec
+    if spec.kind == "pareto":
+        header, rows = _pareto_rows(folder, prov)
+    elif spec.kind == "study":
+        tables = parse_markdown_tables((folder / "summary.md").read_text())
+        if len(tables) <= spec.table:
+            raise TableError(f"results/{name}/summary.md: has {len(tables)} tables, table {spec.table} wanted")
+        header, rows = tables[spec.table]
+    elif spec.kind == "metrics":
+        metrics = _read_json(folder / "metrics.json")
+        header, rows = ["metric", "value"], []
+        for label, keys in spec.metrics:
+            values = [metrics.get(k) for k in keys.split("|")]
+            if all(v is None for v in values):
+                continue
+            rows.append([label, " · ".join(fmt(v) for v in values)])
+    else:
+        raise TableError(f"table {name!r}: unknown kind {spec.kind!r}")
+    return header, rows, prov, spec
+
+
+def render(name: str) -> list[str]:
+    header, rows, prov, spec = table_of(name)
+    return [*markdown_table(header, rows), "", provenance_line(name, prov, spec)]
+
+
+# ---------------------------------------------------------------------------------------------------
+# Markdown files
+# ---------------------------------------------------------------------------------------------------
+def markdown_files() -> list[Path]:
+    out = []
+    for entry in MARKDOWN:
+        path = ROOT / entry
+        out += sorted(path.rglob("*.md")) if path.is_dir() else [path] if path.is_file() else []
+    return out
+
+
+def rebuild(text: str, where: str, used: Optional[dict[str, list[str]]] = None) -> str:
+    """`text` with every marked table regenerated (indented as its opening marker is, e.g. inside a list item)."""
+    lines, out, i, fenced = text.split("\n"), [], 0, False
+    while i < len(lines):
+        out.append(lines[i])
+        if FENCE.match(lines[i]):
+            fenced = not fenced  # a marker inside a code block is an example, not a table
+        match = None if fenced else BEGIN.match(lines[i])
+        i += 1
+        if not match:
+            continue
+        name, indent = match.group("name"), match.group("indent")
+        end = END.format(name=name)
+        j = next((k for k in range(i, len(lines)) if lines[k].strip() == end), None)
+        if j is None:
+            raise TableError(f"{where}: <!-- results:{name} --> has no closing {end}")
+        if any(BEGIN.match(line) for line in lines[i:j]):
+            raise TableError(f"{where}: another results marker opens inside table {name!r}")
+        out += [f"{indent}{line}" if line else "" for line in render(name)]
+        out.append(f"{indent}{end}")
+        if used is not None:
+            used.setdefault(name, []).append(where)
+        i = j + 1
+    return "\n".join(out)
+
+
+def write_atomic(path: Path, text: str) -> None:
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    try:
+        tmp.write_text(text)
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def run(check: bool) -> int:
+    used: dict[str, list[str]] = {}
+    stale = []
+    for path in markdown_files():
+        where = path.relative_to(ROOT).as_posix()
+        text = path.read_text()
+        new = rebuild(text, where, used)
+        if new != text:
+            stale.append(where)
+            if not check:
+                write_atomic(path, new)
+    unused = sorted(p.name for p in RESULTS.iterdir() if p.is_dir() and p.name not in used) if RESULTS.is_dir() else []
+    for name in unused:
+        print(f"note: results/{name}/ is not shown by any table marker", file=sys.stderr)
+    if check:
+        for where in stale:
+            print(f"{where}: its results tables differ from what results/ gives; run "
+                  f"python experiments/results_tables.py", file=sys.stderr)
+        print(f"{len(used)} tables checked in {len(markdown_files())} files: "
+              f"{'all up to date' if not stale else f'{len(stale)} files out of date'}")
+        return 1 if stale else 0
+    print(f"{len(used)} tables; rewrote {len(stale)} files" + (f": {', '.join(stale)}" if stale else ""))
+    return 0
+
+
+# ---------------------------------------------------------------------------------------------------
+# raw outputs → results/
+# ---------------------------------------------------------------------------------------------------
+def _git(*args: str) -> str:
+    try:
+        return subprocess.run(["git", *args], cwd=ROOT, capture_output=True, text=True, check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return ""
+
+
+def _run_record(folder: Path) -> dict[str, Any]:
+    """run.json of the first job of a study folder (or of a run folder): its commit, machine, start."""
+    for path in [folder / "run.json", *sorted(folder.glob("*/*/run.json"))]:
+        if path.is_file():
+            try:
+                return json.loads(path.read_text())
+            except json.JSONDecodeError:
+                continue
+    return {}
+
+
+def _body_dim(folder: Path) -> int:
+    """The body dimension of a study's scene, from a job's evaluation points and grid resolution (2 if unknown)."""
+    import math
+
+    for metrics in sorted(folder.glob("*/*/metrics.json")):
+        config = metrics.parent / ".hydra" / "config.yaml"
+        try:
+            points = float(json.loads(metrics.read_text()).get("evaluation_points", 0))
+            match = re.search(r"^  fine_resolution: (\d+)", config.read_text(), re.M)
+        except (OSError, ValueError, json.JSONDecodeError):
+            continue
+        if match and points > 1 and int(match.group(1)) > 1:
+            return max(1, round(math.log(points) / math.log(int(match.group(1)))))
+    return 2
+
+
+def _summary_field(summary: Path, label: str) -> Optional[str]:
+    if not summary.is_file():
+        return None
+    match = re.search(rf"{label}: (.+?)\.(?: |$)", summary.read_text(), re.M)
+    return match.group(1).strip("`") if match else None
+
+
+def collect(name: str, raw: Optional[Path]) -> Path:
+    """Copy the raw outputs of table `name` into results/<name>/ with their provenance; returns that folder."""
+    spec = SPECS.get(name)
+    if spec is None or spec.kind == "transcribed":
+        raise TableError(f"table {name!r} has no collector: update results/{name}/table.csv by hand")
+    folder = raw if raw is not None else (ROOT / spec.raw if spec.raw else None)
+    if folder is None:
+        raise TableError(f"table {name!r}: give the run's folder, --collect {name}=<folder>")
+    wanted = {"pareto": ["pareto.csv", "summary.md"], "study": [spec.csv or "", "summary.md"],
+              "metrics": ["metrics.json"]}[spec.kind]
+    needed = {"pareto": "pareto.csv", "study": "summary.md", "metrics": "metrics.json"}[spec.kind]
+    if not (folder / needed).is_file():
+        raise TableError(f"{folder}: no {needed} (has the study or run finished?)")
+    record = _run_record(folder)
+    out = RESULTS / name
+    staging = RESULTS / f".{name}.collect-{os.getpid()}"
+    shutil.rmtree(staging, ignore_errors=True)
+    staging.mkdir(parents=True)
+    try:
+        for file in wanted:
+            src = folder / file
+            if file and src.is_file():
+                if src.stat().st_size > MAX_COPY_BYTES:
+                    raise TableError(f"{src}: {src.stat().st_size} bytes, over the {MAX_COPY_BYTES} copied into results/")
+                shutil.copy2(src, staging / file)
+        stamp = dt.datetime.fromtimestamp((folder / needed).stat().st_mtime, dt.timezone.utc)
+        summary = folder / "summary.md"
+        prov = {
+            "machine": _summary_field(summary, "Machine") or record.get("platform") or platform.platform(),
+            "date": stamp.strftime("%Y-%m-%d"),
+            "command": _summary_field(summary, "Command") or spec.command,
+            "commit": (record.get("git_commit") or "")[:7] + (" (uncommitted changes)" if record.get("git_dirty") else "")
+            or None,
+            "transcribed_from_docs": False,
+            "collected_from": folder.relative_to(ROOT).as_posix() if folder.is_relative_to(ROOT) else str(folder),
+            "collected_at_commit": _git("rev-parse", "--short", "HEAD") or None,
+        }
+        if spec.kind == "pareto":
+            prov["body_dim"] = _body_dim(folder)
+        old = RESULTS / name / "provenance.json"
+        if old.is_file():  # keep a hand-written note about the conditions of the run (e.g. a shared CPU)
+            note = json.loads(old.read_text()).get("note_for_reruns")
+            if note:
+                prov["note"] = note
+        (staging / "provenance.json").write_text(json.dumps(prov, indent=1, ensure_ascii=False) + "\n")
+        if out.exists():
+            shutil.rmtree(out)
+        os.replace(staging, out)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    return out
+
+
+def main(argv: Optional[list[str]] = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--check", action="store_true", help="change nothing; exit 1 if a table is out of date")
+    parser.add_argument("--collect", nargs="*", metavar="NAME[=FOLDER]",
+                        help="copy raw outputs into results/ first: every study found under outputs/, or the named "
+                             "tables (a run's table needs its folder: NAME=FOLDER)")
+    parser.add_argument("--list", action="store_true", help="list the tables and their sources")
+    args = parser.parse_args(argv)
+    try:
+        if args.list:
+            used: dict[str, list[str]] = {}
+            for path in markdown_files():
+                rebuild(path.read_text(), path.relative_to(ROOT).as_posix(), used)
+            for name in sorted(used):
+                prov = _read_json(RESULTS / name / "provenance.json")
+                spec = spec_of(name, prov)
+                state = "transcribed" if prov.get("transcribed_from_docs") else f"from raw ({spec.kind})"
+                print(f"{name:34s} {state:22s} raw: {spec.raw or '-':42s} in: {', '.join(used[name])}")
+            return 0
+        if args.collect is not None:
+            names = args.collect or [n for n, s in SPECS.items() if s.raw and (ROOT / s.raw).is_dir()]
+            for item in names:
+                name, _, folder = item.partition("=")
+                try:
+                    out = collect(name, Path(folder).resolve() if folder else None)
+                    print(f"collected {out.relative_to(ROOT)}")
+                except TableError as exc:
+                    if args.collect:  # named: an error; found by themselves: skip the unfinished
+                        raise
+                    print(f"skipped {name}: {exc}", file=sys.stderr)
+        return run(args.check)
+    except TableError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())
