@@ -22,7 +22,15 @@ from typing import Any, Iterable, Optional, Union
 
 from omegaconf import DictConfig, OmegaConf
 
-CONF_DIR = Path(__file__).resolve().parent.parent / "conf"  # as the entry points' @hydra.main(config_path="../conf")
+def _conf_dir() -> Path:
+    """The configs the entry points compose (``@hydra.main(config_path="pkg://lnf.conf")``): the installed package's
+    ``lnf/conf``, which an editable install maps to the repository's ``conf/``."""
+    from importlib.resources import files
+
+    return Path(str(files("lnf.conf")))
+
+
+CONF_DIR = _conf_dir()
 
 # A tree of accepted keys: key -> None (anything below it) or a nested tree (only those sub-keys).
 KeyTree = dict[str, Optional[dict]]

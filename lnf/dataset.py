@@ -1,4 +1,4 @@
-"""Ground-truth trajectory datasets in HDF5 (DESIGN.md §5): generation, reuse checks, loading.
+"""Ground-truth trajectory datasets in HDF5 (docs/method.md §7.1): generation, reuse checks, loading.
 
 A dataset file holds, for the splits ``train``/``val``/``test`` (disjoint trajectories), the full-order
 states, their energies, and the configuration and velocity fields sampled on a fine evaluation grid and
@@ -119,7 +119,7 @@ class DatasetConfig:
     Attributes:
         n_train, n_val, n_test: trajectories per split (disjoint).
         n_times: samples per trajectory; dt: sample spacing [s], t_k = dt·k, k = 0..n_times−1.
-        train_times: the first samples used for training (time split; DESIGN.md §5).
+        train_times: the first samples used for training (time split; docs/method.md §7.1).
         fine_resolution: evaluation grid, fine_resolution^dim_B cell centres.
         coarse_resolution: observation grid, coarse_resolution^dim_B cell centres.
         observed_fraction: fraction of the coarse grid each trajectory observes (fixed random subset).

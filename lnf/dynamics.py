@@ -1,4 +1,4 @@
-"""Reduced Lagrangian dynamics M̃ q̃̈ + c̃ + g̃ = 0 pulled back through φ (DESIGN.md §3, eqs. 8–11).
+"""Reduced Lagrangian dynamics M̃ q̃̈ + c̃ + g̃ = 0 pulled back through φ (docs/method.md §5).
 
 Every term is a quadrature sum over fixed points X_j with weights w_j; φ, J = ∂φ/∂q̃ and H = ∂²φ/∂q̃²
 (and ∇_X φ with its q̃-derivative when the potential depends on the field gradient) come from one

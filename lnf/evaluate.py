@@ -18,10 +18,11 @@ from omegaconf import DictConfig, OmegaConf
 
 from lnf.config_keys import check_known_keys
 from lnf.dataset import SOURCE_ARRAYS, SPLITS, DatasetConfig, ensure_dataset, load_split, stored_generation, verify_dataset
-from lnf.evaluation import evaluate_rollouts, long_horizon_energy
+from lnf.evaluation import evaluate_rollouts, evaluation_cost, long_horizon_energy, quadrature_size
 from lnf.model import build, load
 from lnf.quadrature import grid_shape_of, midpoint_grid
 from lnf.training.callbacks import save_evaluation_figures, stored_reference, write_json_atomic
+from lnf.training.console import quiet_console
 from lnf.utils import print_summary, run_metadata
 
 log = logging.getLogger("lnf.evaluate")
@@ -159,6 +160,7 @@ def evaluate(cfg: DictConfig) -> dict[str, float]:
     Unknown keys and bad settings are refused first (:func:`check_settings`); a figure that cannot be drawn is
     a warning, after metrics.json and run.json are written.
     """
+    quiet_console()
     check_settings(cfg)
     if cfg.get("threads"):
         torch.set_num_threads(int(cfg.threads))
@@ -206,19 +208,31 @@ def evaluate(cfg: DictConfig) -> dict[str, float]:
         lacking = f"{path} holds no full-order states" if not has_states else f"scene {scene.name!r} has no fields()"
         raise ValueError(f"grid.kind={cfg.grid.kind}: fields on other points need the scene's fields() of full-order "
                          f"states, and {lacking}; use grid.kind=stored (the points the trajectories were stored on)")
+    initial = None
     if cfg.get("initial_states") is not None:
         initial = read_initial_states(cfg.initial_states)
         if initial.ndim != 2 or initial.shape[1] != split.states.shape[-1] or not np.isfinite(initial).all():
             got = repr(initial.tolist()) if initial.size <= 16 else f"an array of shape {initial.shape}"  # e.g. a mesh's state
             raise ValueError(f"initial_states must be a list of finite full-order states, each of "
                              f"{split.states.shape[-1]} numbers {tuple(scene.state_names)}, got {got}")
-        states, stored_times, n = scene.simulate(initial, times), False, len(initial)
-    else:
-        states = split.states[:n] if stored_times else scene.simulate(split.states[:n, 0], times)
+        stored_times, n = False, len(initial)
     points, grid_shape = evaluation_points(cfg.grid, scene.bounds, split.fine_points)
     use_stored = stored_times and cfg.grid.kind == "stored"
     quadrature = build(OmegaConf.to_container(cfg.quadrature, resolve=True)) if cfg.get("quadrature") else None
     integrator = OmegaConf.to_container(cfg.integrator, resolve=True)
+    # what it will cost, before anything is simulated or rolled out
+    cost = evaluation_cost(n, len(times), len(points), scene.field_dim, keep_fields=int(cfg.figures),
+                           quadrature_points=quadrature_size(model, quadrature),
+                           trained_quadrature_points=quadrature_size(model))
+    log.info("evaluating %s", cost.describe())
+    if int(cfg.long_steps) > 0:
+        log.info("then the long-horizon energy check: %d trajectories × %d steps", min(int(cfg.long_trajectories), n),
+                 int(cfg.long_steps))
+    if stored_times:
+        states = split.states[:n]
+    else:
+        log.info("simulating the ground truth of %d trajectories × %d samples (dt = %g s)", n, len(times), dt)
+        states = scene.simulate(initial if initial is not None else split.states[:n, 0], times)
 
     start = time.perf_counter()
     own_states = cfg.get("initial_states") is None
@@ -231,7 +245,8 @@ def evaluate(cfg: DictConfig) -> dict[str, float]:
                                true_fields=split.fields[:n] if use_stored else None,
                                true_velocities=split.velocities[:n] if use_stored else None,
                                integrator=integrator, quadrature=quadrature, grid_shape=grid_shape,
-                               max_reduction_points=cfg.max_reduction_points, label=f"{cfg.split} rollout", **reference)
+                               max_reduction_points=cfg.max_reduction_points, label=f"{cfg.split} rollout",
+                               keep_fields=int(cfg.figures), progress=True, **reference)
     metrics = dict(result.metrics)
     if int(cfg.long_steps) > 0:
         k = min(int(cfg.long_trajectories), len(states))
@@ -255,7 +270,7 @@ def evaluate(cfg: DictConfig) -> dict[str, float]:
     return metrics
 
 
-@hydra.main(version_base="1.3", config_path="../conf", config_name="evaluate")
+@hydra.main(version_base="1.3", config_path="pkg://lnf.conf", config_name="evaluate")
 def main(cfg: DictConfig) -> None:
     evaluate(cfg)
 

@@ -1,15 +1,17 @@
 """Reduced rollouts on held-out trajectories and their metrics (shared by the callback and `lnf.evaluate`).
 
-Protocol (DESIGN.md §3, §6): q̃0 = ρ̃(q(t0)) and q̃̇0 = (dφ)^{†,ω0} q̇(t0) from the fields on the evaluation
+Protocol (docs/method.md §7.2): q̃0 = ρ̃(q(t0)) and q̃̇0 = (dφ)^{†,ω0} q̇(t0) from the fields on the evaluation
 points; roll the reduced dynamics out over all samples; decode on the evaluation points; compare with
 the true fields, with the projected reference q̃_ref(t) = ρ̃(q(t)) and with the true energies.
 """
 from __future__ import annotations
 
+import contextlib
+import inspect
 import logging
 import time
 from dataclasses import dataclass, field
-from typing import Optional
+from typing import Callable, Iterator, Optional
 
 import numpy as np
 import torch
@@ -25,14 +27,15 @@ log = logging.getLogger("lnf.evaluation")
 
 @dataclass
 class RolloutEvaluation:
-    """Metrics plus the arrays behind them (n trajectories, T samples, N evaluation points)."""
+    """Metrics plus the arrays behind them (n trajectories, T samples, N evaluation points); the fields only of the
+    first k trajectories that :func:`evaluate_rollouts` was asked to keep (``keep_fields``; all by default)."""
 
     metrics: dict[str, float]
     times: np.ndarray  # (T,)
     q_pred: np.ndarray  # (n, T, d)
     q_ref: np.ndarray  # (n, T, d)
-    pred_fields: np.ndarray  # (n, T, N, A)
-    true_fields: np.ndarray  # (n, T, N, A)
+    pred_fields: np.ndarray  # (k, T, N, A), k ≤ n
+    true_fields: np.ndarray  # (k, T, N, A)
     energies: dict[str, np.ndarray] = field(default_factory=dict)  # each (n, T)
     points: Optional[np.ndarray] = None  # (N, dim_B)
 
@@ -116,6 +119,158 @@ def _chunked(fn, x: Tensor, chunk: int) -> Tensor:
     return torch.cat([fn(x[i:i + chunk]) for i in range(0, x.shape[0], chunk)], dim=0)
 
 
+# Memory bounds of an evaluation (see :func:`evaluate_rollouts`): the true fields of a block of frames in float64
+# take at most FRAME_BLOCK_BYTES (the block's predicted and projected fields as much again), one decoding batch
+# at most DECODE_FRAME_POINTS (frame, point) pairs of φ's activations, and one energy evaluation at most
+# ENERGY_STATE_POINTS (reduced state, quadrature point) pairs of φ's first-order jet.
+FRAME_BLOCK_BYTES = 64 * 2 ** 20
+DECODE_FRAME_POINTS = 2 ** 18
+ENERGY_STATE_POINTS = 2 ** 17
+
+
+def decode_batch(n_points: int, snapshot_chunk: int = 32, max_frame_points: int = DECODE_FRAME_POINTS) -> int:
+    """Frames decoded (and reduced) per batch: `snapshot_chunk`, fewer on many points (32 frames × 16384 points held
+    about 0.7 GB of activations at width 64), at least one."""
+    return max(1, min(int(snapshot_chunk), int(max_frame_points) // max(int(n_points), 1)))
+
+
+def frame_block(n_points: int, field_dim: int, snapshot_chunk: int = 32,
+                budget_bytes: int = FRAME_BLOCK_BYTES) -> int:
+    """Frames decoded and compared at once: as many as fit `budget_bytes` of float64 fields (N, A) each, a multiple
+    of `snapshot_chunk` (the decoding batch), at least one batch."""
+    per_frame = max(int(n_points) * int(field_dim) * 8, 1)
+    frames = max(int(budget_bytes) // per_frame, 1)
+    return max(int(snapshot_chunk), frames // int(snapshot_chunk) * int(snapshot_chunk))
+
+
+def quadrature_size(model: ReducedModel, quadrature: "Quadrature | QuadratureRule | None" = None) -> int:
+    """Points of the quadrature the reduced dynamics (and the reduced energies) sum over."""
+    rule = quadrature if quadrature is not None else model.quadrature_rule
+    quad = rule if isinstance(rule, Quadrature) else rule.build(model.scene.bounds)
+    return int(quad.points.shape[0])
+
+
+def chunked_energy(model: ReducedModel, q: Tensor, v: Tensor, quadrature: "Quadrature | QuadratureRule | None" = None,
+                   max_state_points: int = ENERGY_STATE_POINTS) -> tuple[Tensor, Tensor]:
+    """``model.energy(q, v, quadrature)`` of states (M, d) in batches of at most `max_state_points` / (quadrature
+    points) states: the jet of φ over every state and quadrature point at once needed (M · points · width) floats
+    (13.8 GB for 1600 states on a 64² uniform rule). One batch, as before, when it fits."""
+    per = max(int(max_state_points) // max(quadrature_size(model, quadrature), 1), 1)
+    if q.shape[0] <= per:
+        return model.energy(q, v, quadrature)
+    parts = [model.energy(q[i:i + per], v[i:i + per], quadrature) for i in range(0, q.shape[0], per)]
+    return torch.cat([k for k, _ in parts]), torch.cat([u for _, u in parts])
+
+
+@dataclass
+class EvaluationCost:
+    """What an evaluation holds and computes: n trajectories × T frames × N points × A components."""
+
+    trajectories: int
+    frames: int
+    points: int
+    field_dim: int
+    kept_trajectories: int
+    block_frames: int
+    quadrature_points: Optional[int] = None
+    trained_quadrature_points: Optional[int] = None  # the checkpoint's own rule, when another one is evaluated
+
+    @property
+    def field_bytes(self) -> int:
+        """All predicted fields (n, T, N, A) in float32: what holding them at once would take."""
+        return self.trajectories * self.frames * self.points * self.field_dim * 4
+
+    @property
+    def peak_bytes(self) -> int:
+        """About what the chunked evaluation holds at most: the kept trajectories' predicted and true fields
+        (float64) and one block of true, predicted and projected fields (float64 and float32 copies)."""
+        kept = 2 * self.kept_trajectories * self.frames * self.points * self.field_dim * 8
+        return kept + 5 * self.block_frames * self.points * self.field_dim * 8
+
+    @property
+    def unchunked_bytes(self) -> int:
+        """What the evaluation held before it was chunked: predicted, projected and true fields of every trajectory
+        in float64, with float32 copies of the first two."""
+        return self.trajectories * self.frames * self.points * self.field_dim * (3 * 8 + 2 * 4)
+
+    def describe(self) -> str:
+        quad = f"; the reduced dynamics sum over {self.quadrature_points} quadrature points per evaluation" \
+            if self.quadrature_points else ""
+        if self.quadrature_points and self.trained_quadrature_points not in (None, self.quadrature_points):
+            ratio = self.quadrature_points / self.trained_quadrature_points
+            quad += (f" (the checkpoint's rule has {self.trained_quadrature_points}: the rollout costs about "
+                     f"{ratio:.3g}× as much)")
+        return (f"{self.trajectories} trajectories × {self.frames} frames × {self.points} points"
+                f"{f' × {self.field_dim} components' if self.field_dim > 1 else ''}: the predicted fields are "
+                f"{_size(self.field_bytes)} in float32 (the true and projected ones as much again); decoded "
+                f"{self.block_frames} frames at a time, keeping the fields of {self.kept_trajectories} "
+                f"trajector{'y' if self.kept_trajectories == 1 else 'ies'}: about {_size(self.peak_bytes)} at most{quad}")
+
+
+def _size(n_bytes: float) -> str:
+    for unit in ("B", "KB", "MB", "GB"):
+        if n_bytes < 1024 or unit == "GB":
+            return f"{n_bytes:.0f} {unit}" if unit == "B" else f"{n_bytes:.1f} {unit}"
+        n_bytes /= 1024
+    return f"{n_bytes:.1f} TB"  # pragma: no cover
+
+
+def evaluation_cost(n: int, frames: int, n_points: int, field_dim: int, keep_fields: Optional[int] = None,
+                    snapshot_chunk: int = 32, quadrature_points: Optional[int] = None,
+                    trained_quadrature_points: Optional[int] = None) -> EvaluationCost:
+    """The :class:`EvaluationCost` of :func:`evaluate_rollouts` with these sizes (printed by ``lnf.evaluate`` before
+    it rolls out)."""
+    keep = n if keep_fields is None else min(max(int(keep_fields), 0), n)
+    block = min(frame_block(n_points, field_dim, decode_batch(n_points, snapshot_chunk)), max(n * frames, 1))
+    return EvaluationCost(n, frames, n_points, field_dim, keep, block, quadrature_points, trained_quadrature_points)
+
+
+def _frame_sq(x: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """Σ_j w_j ‖x_j‖² per frame of x (F, N, A): (F,) (lnf.metrics' weighted sum, one frame at a time)."""
+    return np.einsum("fja,j->f", x * x, weights)
+
+
+def _rel_l2_metrics(name: str, err: np.ndarray, ref: np.ndarray, times: np.ndarray,
+                    train_horizon: float) -> dict[str, float]:
+    """:func:`lnf.metrics.field_metrics` from the per-frame weighted squared errors `err` and norms `ref` (n, T)."""
+    out = {}
+    for window, mask in M.time_windows(times, train_horizon).items():
+        if mask.any():
+            rel = np.sqrt(err[:, mask].sum(-1) / np.maximum(ref[:, mask].sum(-1), np.finfo(np.float64).tiny))
+            for stat, value in M.summarize(rel).items():
+                out[f"{name}/{window}/{stat}"] = value
+    return out
+
+
+_VPT_THRESHOLD = inspect.signature(M.valid_prediction_time).parameters["threshold"].default
+
+
+def _valid_prediction_time(err: np.ndarray, ref: np.ndarray, weights: np.ndarray, times: np.ndarray,
+                           threshold: float = _VPT_THRESHOLD) -> np.ndarray:
+    """:func:`lnf.metrics.valid_prediction_time` from the per-frame sums `err` and `ref` (n, T): (n,)."""
+    frame = err / weights.sum()
+    scale = (ref / weights.sum()).mean(-1, keepdims=True)
+    bad = ~(frame / np.maximum(scale, np.finfo(np.float64).tiny) <= threshold)
+    horizon = times[-1] + (times[-1] - times[-2] if len(times) > 1 else 0.0)
+    first = np.where(bad.any(-1), bad.argmax(-1), -1)
+    return np.where(first >= 0, times[np.clip(first, 0, None)], horizon)
+
+
+@contextlib.contextmanager
+def _progress(enabled: bool, total: int, description: str) -> Iterator[Callable[[int], None]]:
+    """A rich progress bar over `total` frames (``advance(k)``), or a no-op when not `enabled`."""
+    if not enabled:
+        yield lambda k: None
+        return
+    from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn,
+                               TimeRemainingColumn)
+
+    with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TextColumn("frames"),
+                  TimeElapsedColumn(), TextColumn("left"), TimeRemainingColumn()) as bar:
+        task = bar.add_task(description, total=total)
+        yield lambda k: bar.advance(task, k)
+
+
 @torch.no_grad()
 def evaluate_rollouts(
     model: ReducedModel,
@@ -134,6 +289,9 @@ def evaluate_rollouts(
     true_energies: Optional[tuple[np.ndarray, np.ndarray]] = None,
     controls: Optional[np.ndarray] = None,
     weights: Optional[np.ndarray] = None,
+    keep_fields: Optional[int] = None,
+    block_bytes: int = FRAME_BLOCK_BYTES,
+    progress: bool = False,
 ) -> RolloutEvaluation:
     """Roll out every trajectory of full-order `states` (n, T, S) sampled at `times` (T,) [s].
 
@@ -141,6 +299,14 @@ def evaluate_rollouts(
     come from `true_fields`/`true_velocities` (n, T, N, A) when given, else from the scene. Decoding and
     errors use all N points; ρ̃ (initial conditions and the projected reference q̃_ref) uses an evenly
     strided subset of at most `max_reduction_points` of them (see :func:`reduction_subset`).
+
+    Memory stays bounded: the frames are decoded, projected and compared a block at a time (at most `block_bytes`
+    of float64 true fields per block, :func:`frame_block`; batches of `snapshot_chunk` frames, fewer on many
+    points, :func:`decode_batch`), the true fields of the scene are computed block by
+    block too, and the metrics are reduced from each frame's weighted sums; only the first `keep_fields`
+    trajectories (default: all) keep their predicted and true fields in the result (``pred_fields``,
+    ``true_fields``, e.g. for Figure 3). The metrics do not depend on the blocks. `progress` shows a progress bar
+    over the decoded frames (not inside a Lightning run, which has its own).
 
     Trajectories written from arrays give what a scene would compute from its states: `true_energies` (kinetic,
     potential) (n, T) each (else ``scene.true_energy_parts(states)``; with neither, the energy errors are left
@@ -155,8 +321,6 @@ def evaluate_rollouts(
         raise ValueError(f"evaluation grid has no points: expected shape (N ≥ 1, dim_B), got {points.shape}")
     scene = model.scene
     p = model.reference_tensor()
-    if true_fields is None or true_velocities is None:
-        true_fields, true_velocities = reference_fields(scene, states, points, label)
     n, T = states.shape[:2]
     dt = float(times[1] - times[0])
     pts = torch.as_tensor(points, dtype=p.dtype, device=p.device)
@@ -164,11 +328,17 @@ def evaluate_rollouts(
         max_reduction_points = None  # the full-order model takes the whole field as its state
     sub = reduction_subset(len(points), grid_shape, max_reduction_points)
     pts_r = pts[torch.as_tensor(sub, device=p.device)]
-    fields_r = torch.as_tensor(np.asarray(true_fields)[:, :, sub], dtype=p.dtype, device=p.device)
-    vel0 = torch.as_tensor(np.asarray(true_velocities)[:, 0, sub], dtype=p.dtype, device=p.device)
+    stored = true_fields is not None and true_velocities is not None
+    if stored:  # (n, T, N, A) arrays: read a block of frames at a time (a view, no copy)
+        true_fields = np.asarray(true_fields)
+        fields0 = np.asarray(true_fields[:, 0])[:, sub]
+        vel0_np = np.asarray(np.asarray(true_velocities)[:, 0])[:, sub]
+    else:  # the scene's fields: at t0 on the reduction subset now, on all points block by block below
+        fields0, vel0_np = (a[:, 0] for a in reference_fields(scene, states[:, :1], points[sub], label))
+    field_dim = int(np.shape(fields0)[-1])
 
-    q0 = model.reduce(pts_r, fields_r[:, 0])
-    v0 = model.project_velocity(q0, pts_r, vel0)
+    q0 = model.reduce(pts_r, torch.as_tensor(fields0, dtype=p.dtype, device=p.device))
+    v0 = model.project_velocity(q0, pts_r, torch.as_tensor(vel0_np, dtype=p.dtype, device=p.device))
     integ = get_integrator(integrator)
     dynamics = model.dynamics(quadrature)  # a tabulated dynamics is built (and cached) here, outside the timing
     table_info = dict(getattr(dynamics, "info", {}))
@@ -183,20 +353,65 @@ def evaluate_rollouts(
         table_info["table_fallback_fraction"] = (dynamics.fallback_rows - counts0[0]) / max(
             dynamics.evaluated_rows - counts0[1], 1)
 
+    if weights is None:
+        weights = np.full(points.shape[0], 1.0 / points.shape[0])
+    else:
+        weights = np.asarray(weights, dtype=np.float64) / float(np.sum(weights))
     d = model.latent_dim
-    flat_q = traj.q.reshape(n * T, d)
+    frames = n * T
+    flat_q = traj.q.reshape(frames, d)
     finite = torch.isfinite(flat_q).all(-1)
     safe_q = torch.where(finite[:, None], flat_q, torch.zeros_like(flat_q))
-    start = time.perf_counter()
-    pred = _chunked(lambda c: model.decode(c, pts), safe_q, snapshot_chunk)
-    decode_seconds = time.perf_counter() - start
-    pred = torch.where(finite[:, None, None], pred, float("nan")).reshape(n, T, *pred.shape[1:])
-    flat_fields = fields_r.reshape(n * T, *fields_r.shape[2:])
-    q_ref = _chunked(lambda f: model.reduce(pts_r, f), flat_fields, snapshot_chunk)
-    proj = _chunked(lambda c: model.decode(c, pts), q_ref, snapshot_chunk).reshape(n, T, *pred.shape[2:])
+    flat_true = true_fields.reshape(frames, *true_fields.shape[2:]) if stored else None
+    flat_states = None if stored else np.asarray(states).reshape(frames, *np.shape(states)[2:])
+    keep = n if keep_fields is None else min(max(int(keep_fields), 0), n)
+    pred_kept = np.empty((keep, T, len(points), field_dim))
+    true_kept = np.empty((keep, T, len(points), field_dim))
+    err = np.empty(frames)  # Σ_j w_j ‖pred − true‖² per frame
+    proj_err = np.empty(frames)  # Σ_j w_j ‖proj − true‖²
+    ref = np.empty(frames)  # Σ_j w_j ‖true‖²
+    q_ref = torch.empty(frames, d, dtype=p.dtype, device=p.device)
+    chunk = decode_batch(len(points), snapshot_chunk)
+    block = frame_block(len(points), field_dim, chunk, block_bytes)  # a multiple of chunk: the same batches
+    decode_seconds = 0.0
+    with _progress(progress, frames, f"decoding the {label}") as advance:
+        for k0 in range(0, frames, block):
+            k1 = min(k0 + block, frames)
+            if stored:
+                truth = np.asarray(flat_true[k0:k1], dtype=np.float64)
+                truth_r = np.asarray(flat_true[k0:k1][:, sub])
+            else:
+                truth = np.asarray(scene.fields(flat_states[k0:k1], points)[0], dtype=np.float64)
+                truth_r = truth[:, sub]
+            truth_r = torch.as_tensor(truth_r, dtype=p.dtype, device=p.device)
+            pred = torch.empty((k1 - k0, len(points), field_dim), dtype=p.dtype, device=p.device)
+            proj = torch.empty_like(pred)
+            for c0 in range(k0, k1, chunk):
+                c1 = min(c0 + chunk, k1)
+                tick = time.perf_counter()
+                alive = finite[c0:c1]
+                if bool(alive.all()):
+                    pred[c0 - k0:c1 - k0] = model.decode(safe_q[c0:c1], pts)
+                else:  # frames after a divergence are NaN: not decoded
+                    pred[c0 - k0:c1 - k0] = float("nan")
+                    if bool(alive.any()):
+                        pred[c0 - k0:c1 - k0][alive] = model.decode(safe_q[c0:c1][alive], pts)
+                decode_seconds += time.perf_counter() - tick
+                q_ref[c0:c1] = model.reduce(pts_r, truth_r[c0 - k0:c1 - k0])
+                proj[c0 - k0:c1 - k0] = model.decode(q_ref[c0:c1], pts)
+                advance(c1 - c0)
+            pred_np, proj_np = pred.double().cpu().numpy(), proj.double().cpu().numpy()
+            err[k0:k1] = _frame_sq(pred_np - truth, weights)
+            proj_err[k0:k1] = _frame_sq(proj_np - truth, weights)
+            ref[k0:k1] = _frame_sq(truth, weights)
+            for i in range(k0 // T, min((k1 - 1) // T + 1, keep)):  # the kept trajectories' frames in this block
+                a, b = max(k0, i * T), min(k1, (i + 1) * T)
+                pred_kept[i, a - i * T:b - i * T] = pred_np[a - k0:b - k0]
+                true_kept[i, a - i * T:b - i * T] = truth[a - k0:b - k0]
+            del truth, truth_r, pred, proj, pred_np, proj_np
 
-    kin, pot = model.energy(torch.where(finite[:, None], flat_q, 0.0),
-                            torch.where(finite[:, None], traj.v.reshape(n * T, d), 0.0), quadrature)
+    kin, pot = chunked_energy(model, torch.where(finite[:, None], flat_q, 0.0),
+                              torch.where(finite[:, None], traj.v.reshape(frames, d), 0.0), quadrature)
     kin = torch.where(finite, kin, float("nan")).reshape(n, T).double().cpu().numpy()
     pot = torch.where(finite, pot, float("nan")).reshape(n, T).double().cpu().numpy()
     if true_energies is None and states.shape[-1] > 0 and scene.provides("true_energy_parts"):
@@ -208,22 +423,16 @@ def evaluate_rollouts(
     else:
         kin_true, pot_true = (np.asarray(e, dtype=np.float64) for e in true_energies)
 
-    if weights is None:
-        weights = np.full(points.shape[0], 1.0 / points.shape[0])
-    else:
-        weights = np.asarray(weights, dtype=np.float64) / float(np.sum(weights))
-    pred_np = pred.double().cpu().numpy()
-    true_np = np.asarray(true_fields, dtype=np.float64)
+    err, proj_err, ref = err.reshape(n, T), proj_err.reshape(n, T), ref.reshape(n, T)
     metrics: dict[str, float] = {}
-    metrics.update(M.field_metrics("field_rel_l2", pred_np, true_np, weights, times, train_horizon))
-    metrics.update(M.field_metrics("projection_rel_l2", proj.double().cpu().numpy(), true_np, weights, times,
-                                   train_horizon))
+    metrics.update(_rel_l2_metrics("field_rel_l2", err, ref, times, train_horizon))
+    metrics.update(_rel_l2_metrics("projection_rel_l2", proj_err, ref, times, train_horizon))
     q_pred_np = traj.q.double().cpu().numpy()
     q_ref_np = q_ref.reshape(n, T, d).double().cpu().numpy()
     metrics.update(M.latent_rmse(q_pred_np, q_ref_np))
     if true_energies is not None:
         metrics.update(M.energy_metrics(kin + pot, kin_true + pot_true, scene.energy_scale))
-    vpt = M.valid_prediction_time(pred_np, true_np, weights, times)
+    vpt = _valid_prediction_time(err, ref, weights, times)
     metrics.update({f"vpt/{k}": v for k, v in M.summarize(vpt).items()})
     metrics["vpt/median"] = float(np.median(vpt))
     metrics["vpt/min"] = float(np.min(vpt))
@@ -240,8 +449,8 @@ def evaluate_rollouts(
         if key in table_info:
             metrics[key] = float(table_info[key])
     return RolloutEvaluation(
-        metrics=metrics, times=np.asarray(times), q_pred=q_pred_np, q_ref=q_ref_np, pred_fields=pred_np,
-        true_fields=true_np, points=np.asarray(points),
+        metrics=metrics, times=np.asarray(times), q_pred=q_pred_np, q_ref=q_ref_np, pred_fields=pred_kept,
+        true_fields=true_kept, points=np.asarray(points),
         energies={"kinetic_pred": kin, "potential_pred": pot, "kinetic_true": kin_true, "potential_true": pot_true},
     )
 
@@ -287,8 +496,10 @@ def long_horizon_energy(
                          controls=trajectory_controls(scene, states0, q0) if controls is None else
                          torch.as_tensor(np.asarray(controls), dtype=q0.dtype, device=q0.device))
     seconds = time.perf_counter() - start
-    kin, pot = model.energy(torch.nan_to_num(traj.q), torch.nan_to_num(traj.v), quadrature)
-    energy = (kin + pot).double().cpu().numpy()
+    shape = traj.q.shape[:-1]
+    kin, pot = chunked_energy(model, torch.nan_to_num(traj.q).reshape(-1, traj.q.shape[-1]),
+                              torch.nan_to_num(traj.v).reshape(-1, traj.v.shape[-1]), quadrature)
+    energy = (kin + pot).reshape(shape).double().cpu().numpy()
     diverged = divergence_steps(traj.diverged_step, ~np.isfinite(energy), record_every)
     energy[diverged >= 0] = np.nan
     drift = np.max(np.abs(energy - energy[:, :1]), axis=-1) / scene.energy_scale

@@ -1,4 +1,4 @@
-"""Test metrics of DESIGN.md §6. Arrays: fields (n, T, N, A), weights (N,), times (T,), energies (n, T)."""
+"""Test metrics of docs/method.md §7.3. Arrays: fields (n, T, N, A), weights (N,), times (T,), energies (n, T)."""
 from __future__ import annotations
 
 import numpy as np
@@ -37,7 +37,7 @@ def summarize(values: np.ndarray) -> dict[str, float]:
 
 
 def time_windows(times: np.ndarray, train_horizon: float) -> dict[str, np.ndarray]:
-    """Boolean masks of the DESIGN.md §6 windows: all, in_horizon (t < horizon), extrapolation (t ≥ horizon)."""
+    """Boolean masks of the docs/method.md §7.3 windows: all, in_horizon (t < horizon), extrapolation (t ≥ horizon)."""
     eps = 1e-9 * max(1.0, abs(train_horizon))
     return {"all": np.ones_like(times, dtype=bool), "in_horizon": times < train_horizon - eps,
             "extrapolation": times >= train_horizon - eps}

@@ -135,7 +135,7 @@ class LagrangianNeuralField(ReducedModel):
             ``lnf.baselines.latent_mlp.LatentMLPDynamics`` (the black-box baseline; it is fitted after the
             field, on the codes of the training trajectories).
 
-    Defaults are those of ``conf/model/lnf.yaml``: w0 = 10 rather than the paper's 30, and λ_v = 0.1 (see the README).
+    Defaults are those of ``conf/model/lnf.yaml``: w0 = 10 rather than the paper's 30, and λ_v = 0.1 (see docs/choices.md).
     """
 
     def __init__(
@@ -278,11 +278,11 @@ class LagrangianNeuralField(ReducedModel):
         self.code_low.copy_(low)
         self.code_high.copy_(high)
 
-    # ------------------------------------------------------------------ training losses (DESIGN.md §2)
+    # ------------------------------------------------------------------ training losses (docs/method.md §4)
     def losses(self, points: Tensor, values: Tensor, velocities: Optional[Tensor] = None,
                potential: Optional[Tensor] = None, energy_factor: float = 1.0,
                gradients: Optional[Tensor] = None) -> dict[str, Tensor]:
-        """Training losses of snapshots (B, N, A) observed at points (B, N, dim_B) (DESIGN.md §2).
+        """Training losses of snapshots (B, N, A) observed at points (B, N, dim_B) (docs/method.md §4).
 
         ``loss = ℓ^r + ℓ^p`` (+ λ_v ℓ^v when ``velocity_weight`` > 0 and `velocities` (B, N, A) are given),
         with the optional tangent reconstruction loss ℓ^v = (1/|X|) Σ_j ω0 ‖J q̃̇ − q̇_j‖², q̃̇ the

@@ -1,7 +1,7 @@
 """Quadrature rules on a box-shaped reference body B.
 
 Every integral over B in lnf is a quadrature sum Σ_j w_j f(X_j). The rule used inside the reduced
-dynamics is a speed/accuracy knob of its own (DESIGN.md §1): tensor Gauss–Legendre rules integrate
+dynamics is a speed/accuracy knob of its own (docs/method.md §6.1): tensor Gauss–Legendre rules integrate
 polynomials of degree 2n−1 per axis exactly; uniform midpoint grids converge only as O(h²).
 """
 from __future__ import annotations

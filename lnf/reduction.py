@@ -1,4 +1,4 @@
-"""The reduction ρ̃: K unrolled gradient steps on the reconstruction loss (DESIGN.md §2, eqs. 15–18).
+"""The reduction ρ̃: K unrolled gradient steps on the reconstruction loss (docs/method.md §3).
 
 Shapes: codes q̃ (B, d); points (N, dim_B) or (B, N, dim_B); values (B, N, A); density ω0 (N,) or (B, N);
 quadrature weights (N,) or (B, N).

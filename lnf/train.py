@@ -16,7 +16,7 @@ from typing import Any, Optional
 import hydra
 import lightning.pytorch as pl
 import torch
-from lightning.pytorch.callbacks import Timer
+from lightning.pytorch.callbacks import EarlyStopping, ProgressBar, Timer
 from omegaconf import DictConfig, OmegaConf
 
 from lnf.baselines.latent_mlp import latent_trajectories
@@ -24,6 +24,7 @@ from lnf.config_keys import check_known_keys
 from lnf.model import dropped_settings
 from lnf.training.callbacks import RolloutEvaluationCallback, write_json_atomic
 from lnf.training.checkpoints import AtomicCheckpointIO, resume_checkpoint
+from lnf.training.console import MetricsProgressBar, quiet_console
 from lnf.training.datamodule import SnapshotDataModule
 from lnf.training.module import LNFModule
 from lnf.utils import check_config, print_summary, resolved_config, run_metadata
@@ -86,19 +87,30 @@ def check_settings(cfg: DictConfig, module: LNFModule) -> None:
 
 
 def training_budget(trainer: pl.Trainer, trained: bool) -> dict[str, float]:
-    """Epochs and optimiser steps run, the epoch budget, and whether ``trainer.max_time`` cut it short."""
+    """Epochs and optimiser steps run, the epoch budget, and whether ``trainer.max_time`` (`stopped_by_time_limit`)
+    or anything else, such as an EarlyStopping callback (`stopped_early`), ended training before the budget."""
     max_epochs = int(trainer.max_epochs or 0)
     if not trained:
-        return {"epochs_run": 0.0, "max_epochs": float(max_epochs), "global_steps": 0.0, "stopped_by_time_limit": 0.0}
+        return {"epochs_run": 0.0, "max_epochs": float(max_epochs), "global_steps": 0.0, "stopped_by_time_limit": 0.0,
+                "stopped_early": 0.0}
     epochs = int(trainer.fit_loop.epoch_progress.current.completed)
     timer = next((c for c in trainer.callbacks if isinstance(c, Timer)), None)
     stopped = timer is not None and epochs < max_epochs and (timer.time_remaining("train") or 0.0) <= 0
     return {"epochs_run": float(epochs), "max_epochs": float(max_epochs), "global_steps": float(trainer.global_step),
-            "stopped_by_time_limit": float(stopped)}
+            "stopped_by_time_limit": float(stopped), "stopped_early": float(epochs < max_epochs and not stopped)}
 
 
-def budget_sentence(metrics: dict[str, float], max_time: Any, trained: bool) -> str:
-    """The end-of-run line that says in words whether the whole epoch budget ran."""
+def stop_reason(trainer: pl.Trainer) -> str:
+    """What ended training before its epoch budget when no time limit did: an EarlyStopping callback (and what it
+    watched), or another callback that set ``trainer.should_stop``."""
+    for cb in trainer.callbacks:
+        if isinstance(cb, EarlyStopping) and cb.stopped_epoch > 0:
+            return f"early stopping on {cb.monitor} (EarlyStopping, patience {cb.patience})"
+    return "a callback that set trainer.should_stop"
+
+
+def budget_sentence(metrics: dict[str, float], max_time: Any, trained: bool, reason: str = "") -> str:
+    """The end-of-run line that says in words whether the whole epoch budget ran, and if not what stopped it."""
     if not trained:
         return "training: none (the model is fitted in closed form)"
     done, total, steps = int(metrics["epochs_run"]), int(metrics["max_epochs"]), int(metrics["global_steps"])
@@ -106,6 +118,9 @@ def budget_sentence(metrics: dict[str, float], max_time: Any, trained: bool) -> 
         return (f"training: STOPPED by the time limit trainer.max_time={max_time} after {done} of {total} epochs "
                 f"({steps} steps): these results are not those of the full budget; raise or remove "
                 f"trainer.max_time and resume with the same command")
+    if metrics.get("stopped_early"):
+        return (f"training: STOPPED early after {done} of {total} epochs ({steps} steps) by "
+                f"{reason or 'a callback that set trainer.should_stop'}")
     return f"training: all {total} epochs ran ({steps} steps); no time limit stopped it"
 
 
@@ -124,6 +139,7 @@ def run_record(cfg: DictConfig, path: Path) -> dict[str, Any]:
 
 def train(cfg: DictConfig) -> dict[str, float]:
     """Generate data if needed, train, test; returns the test metrics (also written to metrics.json)."""
+    quiet_console()
     check_known_keys(cfg, "train", "lnf.train", allowed_extra=("experiment",))
     check_config(cfg)
     output_dir = Path(cfg.paths.output_dir)
@@ -134,7 +150,6 @@ def train(cfg: DictConfig) -> dict[str, float]:
 
     scene_spec = _container(cfg.scene)
     datamodule: SnapshotDataModule = hydra.utils.instantiate(cfg.data, scene=scene_spec, _convert_="all")
-    log.info("dataset: %s", datamodule.path)
     model_spec = _container(cfg.model)
     dynamics_spec = _container(cfg.get("dynamics"))
     if dynamics_spec and not str(dynamics_spec.get("_target_", "")).endswith("ReducedDynamics"):
@@ -154,6 +169,7 @@ def train(cfg: DictConfig) -> dict[str, float]:
     datamodule.potential_targets = getattr(module.model, "energy_weight", 0.0) > 0  # items carry V for ℓ^E
     datamodule.gradient_targets = getattr(module.model, "gradient_weight", 0.0) > 0  # items carry ∇_X q for ℓ^G
     callbacks = [hydra.utils.instantiate(c) for c in (cfg.get("callbacks") or {}).values() if c is not None]
+    callbacks += progress_bar(cfg, callbacks)
     trainer: pl.Trainer = hydra.utils.instantiate(
         cfg.trainer, callbacks=[*callbacks, evaluation], plugins=[AtomicCheckpointIO()],
         logger=build_loggers(cfg, output_dir, resume=ckpt_file is not None) or False)
@@ -196,13 +212,39 @@ def train(cfg: DictConfig) -> dict[str, float]:
         write_json_atomic(output_dir / "metrics.json", metrics)
     evaluation.draw_figures(trainer)  # after the results are written: a figure that fails is a warning
     if trainer.is_global_zero:
-        sentence = budget_sentence(metrics, cfg.trainer.get("max_time"), model.trainable)
-        (log.warning if metrics.get("stopped_by_time_limit") else log.info)("%s", sentence)
+        sentence = budget_sentence(metrics, cfg.trainer.get("max_time"), model.trainable, stop_reason(trainer))
+        if metrics.get("stopped_by_time_limit") or metrics.get("stopped_early"):
+            log.warning("%s", sentence)  # else the table's caption alone says it
         print_summary(metrics, title=f"test metrics ({output_dir})", caption=sentence)
+        for line in wandb_hints(trainer):
+            log.info("%s", line)
     return metrics
 
 
-@hydra.main(version_base="1.3", config_path="../conf", config_name="train")
+def progress_bar(cfg: DictConfig, callbacks: list[Any]) -> list[Any]:
+    """lnf's progress bar (losses in scientific notation, no ``v_num``) unless the bar is off or one is configured."""
+    if not cfg.trainer.get("enable_progress_bar", True) or any(isinstance(c, ProgressBar) for c in callbacks):
+        return []
+    return [MetricsProgressBar()]
+
+
+def wandb_hints(trainer: pl.Trainer) -> list[str]:
+    """One line per wandb run saying where it is (wandb itself is silent, see conf/logger/wandb.yaml): an offline
+    run's folder and how to upload it, an online run's address."""
+    lines = []
+    for logger in trainer.loggers:
+        if type(logger).__name__ != "WandbLogger" or getattr(logger, "_experiment", None) is None:
+            continue
+        run = logger.experiment
+        settings = getattr(run, "settings", None)
+        if getattr(settings, "_offline", False) and getattr(settings, "sync_dir", None):
+            lines.append(f"wandb: offline run; upload it with `wandb sync {settings.sync_dir}`")
+        elif getattr(run, "url", None):
+            lines.append(f"wandb: run at {run.url}")
+    return lines
+
+
+@hydra.main(version_base="1.3", config_path="pkg://lnf.conf", config_name="train")
 def main(cfg: DictConfig) -> Optional[float]:
     metrics = train(cfg)
     return optimized_value(metrics, cfg.get("optimized_metric"))

@@ -69,9 +69,22 @@ def _git(args: list[str], cwd: Path) -> Optional[str]:
     return proc.stdout.strip() if proc.returncode == 0 else None
 
 
+def summary_rows(metrics: dict[str, float]) -> list[tuple[str, str]]:
+    """The rows of :func:`print_summary`: the headline metrics of :data:`SUMMARY_KEYS` (4 significant digits), and
+    after a training the epochs run of the budget, and what stopped it early if anything did."""
+    rows = [(k, f"{metrics[k]:.4g}") for k in SUMMARY_KEYS if k in metrics]
+    if metrics.get("max_epochs"):
+        rows.append(("epochs_run", f"{int(metrics.get('epochs_run', 0))} of {int(metrics['max_epochs'])}"))
+        if metrics.get("stopped_by_time_limit"):
+            rows.append(("stopped_by", "the time limit (trainer.max_time)"))
+        elif metrics.get("stopped_early"):
+            rows.append(("stopped_by", "a callback (early stopping)"))
+    return rows
+
+
 def print_summary(metrics: dict[str, float], title: str = "test metrics", caption: Optional[str] = None) -> None:
     """A short table of the headline metrics (rich if available), with `caption` in words below it."""
-    rows = [(k, metrics[k]) for k in SUMMARY_KEYS if k in metrics]
+    rows = summary_rows(metrics)
     try:
         from rich.console import Console
         from rich.table import Table
@@ -80,11 +93,11 @@ def print_summary(metrics: dict[str, float], title: str = "test metrics", captio
         table.add_column("metric")
         table.add_column("value", justify="right")
         for k, v in rows:
-            table.add_row(k, f"{v:.4g}")
+            table.add_row(k, v)
         Console().print(table)
     except ImportError:  # pragma: no cover
         print(title)
         for k, v in rows:
-            print(f"  {k:40s} {v:.4g}")
+            print(f"  {k:40s} {v}")
         if caption:
             print(caption)

@@ -7,7 +7,7 @@ from lnf.siren import FieldJet
 
 
 class LinearModeEmbedding:
-    """φ(q̃, X) = u(X) q̃ for the lifted pendulum: M̃ = mℓ², c̃ = 0, g̃ = m g ℓ sin q̃ (DESIGN.md §5)."""
+    """φ(q̃, X) = u(X) q̃ for the lifted pendulum: M̃ = mℓ², c̃ = 0, g̃ = m g ℓ sin q̃ (docs/method.md §7.1)."""
 
     def __init__(self, scene, dtype=torch.float64):
         self.scene, self.dtype = scene, dtype

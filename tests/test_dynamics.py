@@ -1,4 +1,4 @@
-"""Reduced dynamics against closed forms (DESIGN.md §3, §5)."""
+"""Reduced dynamics against closed forms (docs/method.md §5, §7.1)."""
 import numpy as np
 import pytest
 import torch

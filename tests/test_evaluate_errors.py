@@ -253,9 +253,9 @@ def test_long_horizon_non_finite_energy_counts_as_divergence(ckpt, monkeypatch):
 
     def nan_energy(q, v, quadrature=None):
         kin, pot = energy(q, v, quadrature)
-        kin = kin.clone()
+        kin = kin.clone().reshape(len(states), -1)  # the check's states in one batch: (trajectories, recorded samples)
         kin[1, 2:] = float("inf")  # recorded sample 2 = step 20 (record_every = 10)
-        return kin, pot
+        return kin.reshape(-1), pot
 
     monkeypatch.setattr(model, "energy", nan_energy)
     out = long_horizon_energy(model, states[:, 0], points, 0.05, 40, integrator="rk4")

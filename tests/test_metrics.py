@@ -1,4 +1,4 @@
-"""DESIGN.md §6 metrics on hand-made arrays, and the evaluation point subset."""
+"""docs/method.md §7.3 metrics on hand-made arrays, and the evaluation point subset."""
 import numpy as np
 import pytest
 

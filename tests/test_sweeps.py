@@ -1,4 +1,5 @@
 """Sweeps through Hydra's plugins: Optuna search, the local parallel launcher, the SLURM launcher config."""
+import csv
 import json
 from pathlib import Path
 
@@ -28,6 +29,12 @@ def test_optuna_search_minimises_the_validation_metric(tmp_path):
     configs = [yaml.safe_load((p.parent / ".hydra" / "overrides.yaml").read_text())
                for p in sorted(result.parent.glob("*/metrics.json"))]
     assert all(any(o.startswith("optimizer.lr=") for o in c) for c in configs)
+    # the sweep's table: one row per trial, the optimised metric among the Markdown table's columns
+    with open(result.parent / "sweep_table.csv", newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert [r["job"] for r in rows] == ["0", "1", "2"] and all(r["status"] == "ok" for r in rows)
+    assert sorted(float(r["val/field_rel_l2/all/median"]) for r in rows) == pytest.approx(sorted(values))
+    assert "val/field_rel_l2/all/median" in (result.parent / "sweep_table.md").read_text()
 
 
 def test_local_parallel_launcher_runs_jobs_with_dataloader_workers(tmp_path):
@@ -37,6 +44,12 @@ def test_local_parallel_launcher_runs_jobs_with_dataloader_workers(tmp_path):
     assert len(runs) == 2
     dims = sorted(json.loads((p.parent / "run.json").read_text())["config"]["model"]["latent_dim"] for p in runs)
     assert dims == [1, 2]
+    # the jobs ran in other processes (joblib): the sweep dir still gets one table of both
+    with open(runs[0].parent.parent / "sweep_table.csv", newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert [(r["job"], r["model.latent_dim"], r["status"]) for r in rows] == [("0", "1", "ok"), ("1", "2", "ok")]
+    assert float(rows[0]["epochs_run"]) == 2.0
+    assert "| 0 | 1 | ok |" in (runs[0].parent.parent / "sweep_table.md").read_text()
 
 
 def test_slurm_launcher_config_composes():

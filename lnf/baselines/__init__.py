@@ -1,4 +1,4 @@
-"""Baselines measured by the same pipeline as our model (DESIGN.md §6): full-order, POD-Galerkin, black-box latent MLP."""
+"""Baselines measured by the same pipeline as our model (docs/method.md §7.5): full-order, POD-Galerkin, black-box latent MLP."""
 from lnf.baselines.full_order import FullOrderModel, NodalDynamics
 from lnf.baselines.latent_mlp import LatentMLPDynamics, LearnedLatentDynamics, latent_trajectories
 from lnf.baselines.pod import LegendreBasis, LinearEmbedding, PODGalerkin

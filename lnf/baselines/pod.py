@@ -1,4 +1,4 @@
-"""POD-Galerkin: the linear special case of our model, φ(q̃, X) = m(X) + Φ(X) q̃ (DESIGN.md §6 baselines).
+"""POD-Galerkin: the linear special case of our model, φ(q̃, X) = m(X) + Φ(X) q̃ (docs/method.md §7.3).
 
 The mean m and the k modes Φ are L²-orthonormal functions of X, stored as coefficients in a tensor
 basis of normalised Legendre polynomials on the box B (so they can be evaluated, and differentiated in

@@ -2,7 +2,7 @@
 
 Body B = [0, L] × [0, H], clamped at X₁ = 0, mass density ρ. The configuration field is the displacement
 u: B → ℝ² (positions X + u), so `field_rel_l2` is normalised by the displacement from the reference
-configuration. The Lagrangian (DESIGN.md §3 with eq. 11):
+configuration. The Lagrangian (docs/method.md §5.1):
 
     T = ½ ∫ ρ ‖u̇‖² dX,   V = ∫ W(I + ∇_X u) dX + ∫ ρ g u₂ dX,   W(F) = μ E:E + ½ λ (tr E)².
 

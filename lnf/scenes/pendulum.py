@@ -1,4 +1,4 @@
-"""The paper's benchmark: a pendulum lifted into a scalar field on Ω = [-1, 1]² (DESIGN.md §5)."""
+"""The paper's benchmark: a pendulum lifted into a scalar field on Ω = [-1, 1]² (docs/method.md §7.1)."""
 from __future__ import annotations
 
 from typing import Any, Optional, Sequence

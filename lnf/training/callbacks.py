@@ -82,7 +82,7 @@ def _positive(key: str, value: Any) -> float:
 
 
 class RolloutEvaluationCallback(pl.Callback):
-    """Rolls out the reduced dynamics on held-out trajectories and logs DESIGN.md §6 metrics.
+    """Rolls out the reduced dynamics on held-out trajectories and logs docs/method.md §7.3 metrics.
 
     Runs on the validation split every `every_n_epochs` validation epochs (on `val_trajectories`
     trajectories and a `val_resolution`² grid) and on the test split at test time (all test

@@ -1,4 +1,5 @@
-"""A CSV logger whose resumed run appends to the log it resumes instead of starting a new version."""
+"""lnf's loggers: a CSV logger whose resumed run appends to the log it resumes instead of starting a new version,
+and a wandb logger without Lightning's deprecated ``anonymous`` argument."""
 from __future__ import annotations
 
 import csv
@@ -8,7 +9,9 @@ from typing import Any, Optional
 
 from lightning.fabric.utilities.rank_zero import rank_zero_only
 from lightning.pytorch.loggers import CSVLogger as LightningCSVLogger
+from lightning.pytorch.loggers import WandbLogger as LightningWandbLogger
 from lightning.pytorch.loggers.csv_logs import ExperimentWriter
+from omegaconf import OmegaConf
 
 
 class _AppendingWriter(ExperimentWriter):
@@ -43,3 +46,23 @@ class CSVLogger(LightningCSVLogger):
             self._fs.makedirs(self.root_dir, exist_ok=True)
             self._experiment = _AppendingWriter(log_dir=self.log_dir)
         return super().experiment
+
+
+class WandbLogger(LightningWandbLogger):
+    """``lightning.pytorch.loggers.WandbLogger`` that passes wandb only the settings it is given: Lightning sends
+    ``anonymous=None`` even when it is unset, which wandb ≥ 0.19 answers with a deprecation warning on every run;
+    ``settings`` may be a mapping (from the YAML config) of :class:`wandb.Settings` fields, e.g. ``quiet: true``."""
+
+    def __init__(self, *args: Any, anonymous: Optional[bool] = None, settings: Any = None, **kwargs: Any) -> None:
+        if settings is not None and not _is_wandb_settings(settings):
+            settings = dict(OmegaConf.to_container(settings, resolve=True) if OmegaConf.is_config(settings)
+                            else settings)
+        if settings is not None:
+            kwargs["settings"] = settings
+        super().__init__(*args, anonymous=anonymous, **kwargs)
+        if anonymous is None:
+            self._wandb_init.pop("anonymous", None)
+
+
+def _is_wandb_settings(value: Any) -> bool:
+    return type(value).__name__ == "Settings" and type(value).__module__.startswith("wandb")

@@ -13,7 +13,7 @@ from lnf.model import build_model
 
 
 class LNFModule(pl.LightningModule):
-    """Trains φ and ρ̃ with ℓ = ℓ^r + ℓ^p (DESIGN.md §2); wraps closed-form baselines (POD, full order) too.
+    """Trains φ and ρ̃ with ℓ = ℓ^r + ℓ^p (docs/method.md §4); wraps closed-form baselines (POD, full order) too.
 
     All arguments are plain dicts so that the checkpoint describes itself (``save_hyperparameters``).
 

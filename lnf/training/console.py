@@ -1,0 +1,109 @@
+"""A quiet, informative console for ``lnf.train``: known noise of Lightning and torch filtered out by message,
+losses in scientific notation in the progress bar.
+
+Only the messages listed here are dropped, each matched by a precise regular expression (warnings by message and
+category, log records by logger and message): every other warning, lnf's own ones included (a diverged rollout,
+a dropped setting), and every error still shows.
+"""
+from __future__ import annotations
+
+import logging
+import re
+import warnings
+from typing import Any, Union
+
+from lightning.pytorch.callbacks import RichProgressBar
+
+# (message regex, category) of warnings that say nothing about an lnf run
+NOISE_WARNINGS: tuple[tuple[str, type[Warning]], ...] = (
+    # torch ≥ 2.10 deprecates LeafSpec, which Lightning's own _pytree still instantiates
+    (r"`isinstance\(treespec, LeafSpec\)` is deprecated", FutureWarning),
+    # a dataset of few snapshots has fewer batches per epoch than log_every_n_steps: the epoch values are logged
+    (r"The number of training batches \(\d+\) is smaller than the logging interval", UserWarning),
+    # lnf resumes from the checkpoints of a reused output dir on purpose (lnf.train says "resuming from ...")
+    (r"Checkpoint directory .* exists and is not empty", UserWarning),
+    # lnf's DataLoaders run in the main process by default (data.num_workers=0, the snapshots are cheap)
+    (r"The '\w+_dataloader' does not have many workers which may be a bottleneck", UserWarning),
+)
+
+# logger name -> message regexes of log records (at INFO) that repeat what lnf says or advertise
+_RANK_ZERO = (
+    r"💡 Tip: ",
+    r"(GPU|TPU|HPU|IPU) available: ",
+    r"LOCAL_RANK: \d+ - CUDA_VISIBLE_DEVICES: ",
+    r"Loading `train_dataloader` to estimate number of stepping batches\.$",
+    r"`Trainer\.fit` stopped: `max_epochs=\d+` reached\.$",  # the end-of-run table says how many epochs ran
+    r"Restoring states from the checkpoint path at ",  # lnf.train says "resuming from ..."
+    r"Restored all states from the checkpoint at ",
+)
+NOISE_LOGS: dict[str, tuple[str, ...]] = {
+    "lightning.pytorch.utilities.rank_zero": _RANK_ZERO,
+    "lightning.fabric.utilities.rank_zero": _RANK_ZERO,
+    "lightning_utilities.core.rank_zero": _RANK_ZERO,
+    "lightning.fabric.utilities.seed": (r"Seed set to -?\d+$",),  # the seed is in run.json
+    "lightning.pytorch.trainer.connectors.checkpoint_connector": (r"`weights_only` was not set, defaulting to ",),
+}
+
+
+class MessageFilter(logging.Filter):
+    """Drops the INFO (and lower) records of one logger whose message matches one of `patterns`; a warning or an
+    error always passes."""
+
+    def __init__(self, patterns: tuple[str, ...]) -> None:
+        super().__init__()
+        self.pattern = re.compile("|".join(f"(?:{p})" for p in patterns))
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if record.levelno > logging.INFO:
+            return True
+        try:
+            message = record.getMessage()
+        except Exception:  # noqa: BLE001 - a malformed record is shown as it is
+            return True
+        return self.pattern.match(message) is None
+
+
+def process_rank() -> int:
+    """The global rank Lightning reads from the environment (RANK, SLURM_PROCID, LOCAL_RANK, ...); 0 alone."""
+    from lightning.fabric.utilities.rank_zero import _get_rank
+
+    return int(_get_rank() or 0)
+
+
+def quiet_console() -> None:
+    """Filter the known noise of :data:`NOISE_WARNINGS` and :data:`NOISE_LOGS` (idempotent). On the other
+    processes of a distributed run (DDP, SLURM tasks) lnf logs only warnings and errors: rank 0 says once what
+    every rank does (the dataset it reuses, where it resumes)."""
+    for message, category in NOISE_WARNINGS:
+        warnings.filterwarnings("ignore", message=message, category=category)
+    for name, patterns in NOISE_LOGS.items():
+        logger = logging.getLogger(name)
+        if not any(isinstance(f, MessageFilter) for f in logger.filters):
+            logger.addFilter(MessageFilter(patterns))
+    if process_rank() > 0 and logging.getLogger("lnf").getEffectiveLevel() < logging.WARNING:
+        logging.getLogger("lnf").setLevel(logging.WARNING)  # lnf.* loggers inherit it
+
+
+def format_metric(value: Any) -> Any:
+    """A float (or a 0-d tensor) in scientific notation with 3 significant digits (``1.23e-04``); other values
+    unchanged."""
+    if hasattr(value, "item") and getattr(value, "ndim", 1) == 0:
+        value = value.item()
+    if isinstance(value, float):
+        return f"{value:.2e}"
+    return value
+
+
+class MetricsProgressBar(RichProgressBar):
+    """Lightning's rich progress bar, without the logger's meaningless ``v_num`` and with the losses in
+    scientific notation (a loss of 1e-4 read 0.000 before)."""
+
+    def get_metrics(self, trainer: Any, pl_module: Any) -> dict[str, Union[int, str, float, dict[str, float]]]:
+        items = super().get_metrics(trainer, pl_module)
+        items.pop("v_num", None)
+        return {k: format_metric(v) for k, v in items.items()}
+
+    def _get_train_description(self, current_epoch: int) -> str:
+        """"Epoch 3/40" counted from 1, as the end-of-run table counts epochs (Lightning's bar says "Epoch 2/39")."""
+        text = f"Epoch {current_epoch + 1}" + (f"/{self.trainer.max_epochs}" if self.trainer.max_epochs else "")
+        return f"{text:{len(self.validation_description)}}"

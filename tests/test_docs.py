@@ -1,0 +1,170 @@
+"""The documentation: the site builds with `mkdocs build --strict`, every relative link of the README and the docs
+names a file of the repository, nothing refers to documents outside it, and every results table is what its
+sources under results/ give (experiments/results_tables.py --check)."""
+from __future__ import annotations
+
+import csv
+import json
+import os
+import re
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "experiments"))
+import results_tables as RT  # noqa: E402
+
+sys.path.remove(str(ROOT / "experiments"))
+
+# spelled in two parts, so that this file does not contain what it looks for
+FORBIDDEN = ["DESIGN" + ".md", ".." + "/shared"]
+SCANNED = ["README.md", "CHANGELOG.md", "mkdocs.yml", "docs", "lnf", "conf", "tests", "examples", "experiments",
+           "results"]
+TEXT_SUFFIXES = {".md", ".py", ".yaml", ".yml", ".toml", ".txt", ".cfg", ".json", ".csv", ".ini", ".sh", ""}
+LINK = re.compile(r"!?\[(?P<text>[^\]\n]*)\]\((?P<target>[^)\s]+)(?:\s+\"[^\"]*\")?\)")
+HTML_LINK = re.compile(r"<(?:a|img)\b[^>]*?\b(?:href|src)=\"(?P<target>[^\"]+)\"")
+
+
+def markdown_files() -> list[Path]:
+    return [ROOT / "README.md", ROOT / "CHANGELOG.md", *sorted((ROOT / "docs").rglob("*.md"))]
+
+
+def links(path: Path) -> list[tuple[int, str]]:
+    """(line, target) of every Markdown and HTML link and image outside code blocks and inline code."""
+    out, fenced = [], False
+    for number, line in enumerate(path.read_text().split("\n"), 1):
+        if re.match(r"^\s*(```|~~~)", line):
+            fenced = not fenced
+            continue
+        if fenced:
+            continue
+        line = re.sub(r"`[^`]*`", "", line)
+        out += [(number, m.group("target")) for m in LINK.finditer(line)]
+        out += [(number, m.group("target")) for m in HTML_LINK.finditer(line)]
+    return out
+
+
+def test_site_builds_in_strict_mode(tmp_path):
+    start = time.perf_counter()
+    proc = subprocess.run([sys.executable, "-m", "mkdocs", "build", "--strict", "--site-dir", str(tmp_path / "site")],
+                          cwd=ROOT, capture_output=True, text=True, timeout=300,
+                          env={**os.environ, "NO_MKDOCS_2_WARNING": "1"})
+    assert proc.returncode == 0, ("mkdocs build --strict failed (pip install -e '.[dev]' installs mkdocs and its "
+                                  "plugins):\n" + proc.stderr[-5000:])
+    site = tmp_path / "site"
+    for page in ["index.html", "method.html", "configuration.html", "own_system.html", "data_format.html",
+                 "scaling.html", "results.html", "choices.html", "api.html", "changelog.html"]:
+        assert (site / page).is_file(), page
+    api = (site / "api.html").read_text()
+    for name in ["lnf.load", "lnf.scenes.Scene", "lnf.scenes.check.check_scene", "lnf.trajectories.write_dataset",
+                 "lnf.mesh_io.read_mesh_series", "lnf.integrators.get_integrator", "lnf.metrics"]:
+        assert name in api, f"the API reference has no {name}"
+    assert "Keep a Changelog" in (site / "changelog.html").read_text()
+    assert time.perf_counter() - start < 120
+
+
+def test_every_relative_link_resolves_inside_the_repository():
+    bad = []
+    for path in markdown_files():
+        for number, target in links(path):
+            if re.match(r"^[a-z][a-z0-9+.-]*:", target) or target.startswith("#"):
+                continue  # a URL (checked below) or an anchor of the page (checked by mkdocs for docs/)
+            relative = target.split("#", 1)[0]
+            resolved = (path.parent / relative).resolve()
+            where = f"{path.relative_to(ROOT)}:{number}: {target}"
+            if target.startswith("/") or not resolved.is_relative_to(ROOT):
+                bad.append(f"{where} (leaves the repository)")
+            elif not resolved.exists():
+                bad.append(f"{where} (no such file)")
+    assert not bad, "broken links:\n" + "\n".join(bad)
+
+
+def test_the_docs_link_to_nothing_outside_the_repository():
+    external = [f"{p.relative_to(ROOT)}:{n}: {t}" for p in markdown_files() for n, t in links(p)
+                if re.match(r"^(https?|ftp):", t)]
+    assert not external, "the project stands on its own; links outside it:\n" + "\n".join(external)
+
+
+def test_no_file_refers_to_documents_outside_the_repository():
+    hits = []
+    for entry in SCANNED:
+        base = ROOT / entry
+        files = [base] if base.is_file() else [p for p in base.rglob("*") if p.is_file()]
+        for path in files:
+            if "__pycache__" in path.parts or path.suffix not in TEXT_SUFFIXES:
+                continue
+            try:
+                text = path.read_text()
+            except UnicodeDecodeError:
+                continue
+            for number, line in enumerate(text.split("\n"), 1):
+                hits += [f"{path.relative_to(ROOT)}:{number}: {line.strip()[:120]}" for word in FORBIDDEN if word in line]
+    assert not hits, "references to documents outside the repository (point to docs/method.md instead):\n" + "\n".join(hits)
+
+
+def test_readme_keeps_its_three_commands_first_and_stays_short():
+    lines = (ROOT / "README.md").read_text().split("\n")
+    assert lines[2] == "```bash" and lines[6] == "```"
+    assert lines[3].startswith('pip install "torch==2.13.0" -e ".[dev]"')
+    assert lines[4].startswith("python -m lnf.train +experiment=pendulum")
+    assert lines[5].startswith("python -m pytest -q")
+    assert len(lines) <= 201, f"README.md has {len(lines)} lines; it is a front door (≤ 200), the docs hold the rest"
+
+
+def test_results_tables_match_their_sources():
+    proc = subprocess.run([sys.executable, "experiments/results_tables.py", "--check"], cwd=ROOT, capture_output=True,
+                          text=True, timeout=60)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+
+
+def test_every_results_source_has_its_provenance():
+    folders = sorted(p for p in RT.RESULTS.iterdir() if p.is_dir() and not p.name.startswith("."))
+    assert folders
+    for folder in folders:
+        prov = json.loads((folder / "provenance.json").read_text())
+        for key in ("machine", "date", "command"):
+            assert prov.get(key), f"{folder.name}: provenance.json has no {key}"
+        assert isinstance(prov.get("transcribed_from_docs"), bool), folder.name
+        if prov["transcribed_from_docs"]:
+            rows = list(csv.reader(open(folder / "table.csv", newline="")))
+            assert len(rows) >= 2 and all(len(r) == len(rows[0]) for r in rows), f"{folder.name}: ragged table.csv"
+
+
+def test_a_changed_cell_is_found_and_rebuilt():
+    text = (ROOT / "README.md").read_text()
+    assert "<!-- results:summary -->" in text
+    header, rows, _, _ = RT.table_of("summary")
+    cell = rows[0][1]
+    drifted = text.replace(f"| {cell} |", "| 0.5 · 0.5 · 0.5 |", 1)
+    assert drifted != text and RT.rebuild(drifted, "README.md") == text
+
+
+def test_a_marker_without_sources_or_end_is_an_error():
+    with pytest.raises(RT.TableError, match="no such folder"):
+        RT.rebuild("<!-- results:no-such-table -->\n<!-- /results:no-such-table -->\n", "x.md")
+    with pytest.raises(RT.TableError, match="no closing"):
+        RT.rebuild("<!-- results:summary -->\n| a |\n", "x.md")
+
+
+def test_collect_copies_a_study_and_the_table_follows_its_summary(tmp_path, monkeypatch):
+    study = tmp_path / "outputs" / "studies" / "stability"
+    (study / "train_lnf" / "0").mkdir(parents=True)
+    (study / "stability.csv").write_text("sweep,job,method\ntrain_lnf,0,lnf\n")
+    (study / "summary.md").write_text(
+        "# Stability study (pendulum, reduced settings)\n\nMachine: x86_64, 2 cores visible, torch 2.13.0+cpu, "
+        "2 threads. Command: `python experiments/stability.py`.\n\n| method | energy drift 20× |\n|---|---|\n"
+        "| LNF (ours) | 2.65e-05 |\n")
+    (study / "train_lnf" / "0" / "run.json").write_text(json.dumps({"git_commit": "0123456789abcdef", "git_dirty": False}))
+    monkeypatch.setattr(RT, "RESULTS", tmp_path / "results")
+    out = RT.collect("stability-pendulum", study)
+    prov = json.loads((out / "provenance.json").read_text())
+    assert prov["transcribed_from_docs"] is False and prov["commit"] == "0123456"
+    assert prov["command"] == "python experiments/stability.py" and prov["machine"].startswith("x86_64, 2 cores")
+    assert (out / "stability.csv").is_file()
+    lines = RT.render("stability-pendulum")
+    assert lines[:3] == ["| method | energy drift 20× |", "|---|---|", "| LNF (ours) | 2.65e-05 |"]
+    assert "transcribed" not in lines[-1] and "at commit 0123456" in lines[-1]
