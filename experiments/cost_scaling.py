@@ -143,32 +143,47 @@ def plot(study: S.Study, rows: list[dict]) -> Path:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.lines import Line2D
 
-    fig, axes = plt.subplots(1, 3, figsize=(17, 4.8))
+    fig, axes = plt.subplots(1, 3, figsize=(15, 5.2), layout="constrained")
+    steps = next((int(round(r["rollout_seconds"] / r["rollout_seconds_per_step"])) for r in rows
+                  if r.get("rollout_seconds_per_step")), 100)
+    handles = []
+    style = dict(alpha=0.85, markeredgecolor="white", markeredgewidth=0.6, markersize=6, lw=1.6)
     for m in S.METHODS:
         pts = sorted((r for r in rows if r["method"] == m and r["sweep"] == "points"), key=lambda r: r["points"])
         bat = sorted((r for r in rows if r["method"] == m and r["sweep"] == "batch"), key=lambda r: r["batch"])
         if not pts:
             continue
-        x = [r["points"] for r in pts]
-        axes[0].plot(x, [r["rollout_seconds"] for r in pts], "-", marker=S.MARKERS[m], color=S.COLORS[m],
-                     label=f"{S.LABELS[m]}: rollout (100 steps)")
-        axes[0].plot(x, [r["decode_seconds"] for r in pts], ":", marker=S.MARKERS[m], color=S.COLORS[m],
-                     label=f"{S.LABELS[m]}: decoding (100 frames)")
-        axes[1].plot(x, [max(r["rollout_peak_mib"], r["decode_peak_mib"]) for r in pts], "-", marker=S.MARKERS[m],
-                     color=S.COLORS[m], label=S.LABELS[m])
-        axes[2].plot([r["batch"] for r in bat], [r["rollout_seconds"] / r["batch"] for r in bat], "-",
-                     marker=S.MARKERS[m], color=S.COLORS[m], label=S.LABELS[m])
-    axes[0].set_xlabel("evaluation points (16 trajectories)")
-    axes[0].set_ylabel("wall-clock [s]")
-    axes[1].set_xlabel("evaluation points (16 trajectories)")
-    axes[1].set_ylabel("peak memory above baseline [MiB] (RSS, 1 ms sampling)")
+        kw = dict(marker=S.MARKERS[m], color=S.COLORS[m], **style)
+        x = S.dodged([r["points"] for r in pts], m)  # coincident curves stay side by side
+        axes[0].plot(x, [r["rollout_seconds"] for r in pts], "-", **kw)
+        axes[0].plot(x, [r["decode_seconds"] for r in pts], ":", **kw)
+        axes[1].plot(x, [max(r["rollout_peak_mib"], r["decode_peak_mib"]) for r in pts], S.LINESTYLES[m], **kw)
+        axes[2].plot(S.dodged([r["batch"] for r in bat], m),
+                     [r["rollout_seconds"] / r["batch"] for r in bat], S.LINESTYLES[m], **kw)
+        handles.append(Line2D([], [], marker=S.MARKERS[m], color=S.COLORS[m], ls=S.LINESTYLES[m], label=S.LABELS[m],
+                              **{k: v for k, v in style.items() if k != "lw"}))
+    handles += [Line2D([], [], color="0.3", ls="-", label=f"left: rollout ({steps} steps)"),
+                Line2D([], [], color="0.3", ls=":", label=f"left: decoding ({steps} frames)")]
+    n_traj = next((r["batch"] for r in rows if r["sweep"] == "points" and "batch" in r), 16)
     batch_points = next((r["points"] for r in rows if r["sweep"] == "batch"), "")
-    axes[2].set_xlabel(f"trajectories rolled out at once ({batch_points}-point grid)")
-    axes[2].set_ylabel("rollout wall-clock per trajectory [s] (100 steps)")
+    axes[0].set_xlabel(f"{S.metric_label('points')} ({n_traj} trajectories)")
+    axes[0].set_ylabel("wall-clock [s]")
+    axes[0].set_title("Rollout (solid) and decoding (dotted)", fontsize=10)
+    axes[1].set_xlabel(f"{S.metric_label('points')} ({n_traj} trajectories)")
+    axes[1].set_ylabel(S.metric_label("peak_mib") + "\n(resident set, 1 ms sampling)")
+    axes[1].set_title("Peak memory of rollout or decoding", fontsize=10)
+    axes[2].set_xlabel(f"{S.metric_label('batch')} ({batch_points}-point grid)")
+    axes[2].set_ylabel(f"rollout wall-clock per trajectory [s] ({steps} steps)")
+    axes[2].set_title("Batched rollout", fontsize=10)
     for ax in axes:
-        S.log_axes(ax, legend_size=6)
-    fig.suptitle(f"Cost scaling, {study.scene} — {S.caption(study)}", fontsize=9)
+        S.log_axes(ax, legend="none")
+    for ax in axes[:2]:
+        S.ticks_at(ax, [r["points"] for r in rows if r["sweep"] == "points"], fmt=lambda v: f"{v:.0f}")
+    S.ticks_at(axes[2], [r["batch"] for r in rows if r["sweep"] == "batch"])
+    fig.legend(handles=handles, loc="outside lower center", ncols=len(handles), fontsize="small", frameon=False)
+    fig.suptitle(f"Cost scaling, {study.scene} ({S.DODGE_NOTE})\n{S.caption(study)}", fontsize=9)
     return S.save_figure(fig, study.out / "cost_scaling.png")
 
 

@@ -32,44 +32,57 @@ def choose(rows: list[dict], target: float) -> Optional[dict]:
     return min((r for r in ok if int(r["model.latent_dim"]) == d), key=lambda r: int(r["model.width"]))
 
 
+DIM_STYLES = [("o", "-"), ("s", "--"), ("^", "-."), ("D", ":"), ("v", (0, (5, 1, 1, 1)))]  # (marker, line) per d
+
+
 def plot(study: S.Study, rows: list[dict], others: list[dict], target: float, chosen: Optional[dict]) -> Path:
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, (ax, ax2) = plt.subplots(1, 2, figsize=(12, 4.5))
+    fig, (ax, ax2) = plt.subplots(1, 2, figsize=(12, 5.0), layout="constrained", sharey=True)
     pod = sorted((r for r in others if r["method"] == "pod"), key=lambda r: int(r["model.latent_dim"]))
     # diverged runs (inf error) are drawn at 10 and marked ×
     S.plot_marking_failures(ax2, np.array([int(r["model.latent_dim"]) for r in pod]),
                             np.array([float(r[ERR]) for r in pod]), np.zeros(len(pod), bool),
-                            marker=S.MARKERS["pod"], color=S.COLORS["pod"], label=S.LABELS["pod"])
-    for m in ("latent_mlp", "full_order"):
+                            marker=S.MARKERS["pod"], color=S.COLORS["pod"], ls=S.LINESTYLES["pod"], lw=1.6,
+                            label=S.LABELS["pod"])
+    if chosen:  # under the baselines' lines (wide, light): a baseline at the same error stays visible on top
+        ax2.axhline(float(chosen[ERR]), color=S.COLORS["lnf"], ls="-", lw=3.0, alpha=0.45, zorder=1,
+                    label=f"LNF (ours), choice (d = {chosen['model.latent_dim']}, width {chosen['model.width']})")
+    for m, ls in (("latent_mlp", (0, (1, 1.5))), ("full_order", (0, (5, 2)))):
         for r in (r for r in others if r["method"] == m and np.isfinite(float(r[ERR]))):
-            ax2.axhline(float(r[ERR]), color=S.COLORS[m], ls=":",
+            ax2.axhline(float(r[ERR]), color=S.COLORS[m], ls=ls, lw=1.5, zorder=2,
                         label=f"{S.LABELS[m]}" + (f" (d = {r['model.latent_dim']}, width {r['model.width']})"
                                                   if m == "latent_mlp" else " (64² grid)"))
-    if chosen:
-        ax2.axhline(float(chosen[ERR]), color=S.COLORS["lnf"], ls="-", label=f"LNF (ours), choice")
-    ax2.axhline(target, color="k", ls="--", label=f"target {target:g}")
+    ax2.axhline(target, color="k", ls="--", lw=1.0, label=f"target {target:g}")
     ax2.set_yscale("log")
     ax2.set_xlabel("latent dimension d (POD: number of modes k)")
-    ax2.set_ylabel("test field_rel_l2 (all), median")
-    ax2.grid(True, which="both", alpha=0.3)
-    ax2.legend(fontsize=7)
-    ax2.set_title("Baselines at the same target (×: diverged, drawn at 10)", fontsize=9)
-    for d in sorted({int(r["model.latent_dim"]) for r in rows}):
+    ax2.set_xticks(sorted({int(r["model.latent_dim"]) for r in pod} | {int(r["model.latent_dim"]) for r in rows}))
+    ax2.grid(True, which="major", alpha=0.35)
+    ax2.grid(True, which="minor", alpha=0.12)
+    ax2.set_title("Baselines at the same target (× = diverged, drawn at 10)", fontsize=10)
+    S.readable_log_ticks(ax2)
+    S.legend_outside(ax2, "below", ncols=2)
+    dims = sorted({int(r["model.latent_dim"]) for r in rows})
+    for k, d in enumerate(dims):
         sel = sorted((r for r in rows if int(r["model.latent_dim"]) == d), key=lambda r: int(r["model.width"]))
-        S.plot_marking_failures(ax, np.array([int(r["model.width"]) for r in sel]), np.array([float(r[ERR]) for r in sel]),
-                                np.zeros(len(sel), bool), marker="o", label=f"latent d = {d}")
-    ax.axhline(target, color="k", ls="--", label=f"target {target:g}")
+        marker, ls = DIM_STYLES[k % len(DIM_STYLES)]
+        dodge = 1.0 + 0.02 * (k - (len(dims) - 1) / 2)  # a small sideways offset keeps coincident curves apart
+        S.plot_marking_failures(ax, np.array([int(r["model.width"]) for r in sel]) * dodge,
+                                np.array([float(r[ERR]) for r in sel]), np.zeros(len(sel), bool), marker=marker,
+                                ls=ls, lw=1.6, color=f"C{k}", label=f"latent d = {d}")
+    ax.axhline(target, color="k", ls="--", lw=1.0, label=f"target {target:g}")
     if chosen:
         ax.scatter([int(chosen["model.width"])], [float(chosen[ERR])], s=250, facecolors="none", edgecolors="r", lw=2,
-                   label=f"choice: d = {chosen['model.latent_dim']}, width {chosen['model.width']}")
-    ax.set_xlabel("SIREN width")
-    ax.set_ylabel("test field_rel_l2 (all), median")
-    S.log_axes(ax, legend_size=8, x_base=2)
-    ax.set_title(f"Model size, {study.scene} — {study.mode} settings", fontsize=9)
+                   label=f"choice: d = {chosen['model.latent_dim']}, width {chosen['model.width']}", zorder=5)
+    ax.set_xlabel(S.metric_label("model.width"))
+    ax.set_ylabel(S.metric_label(ERR, wrap=True))
+    S.log_axes(ax, x_base=2, legend="none")
+    S.ticks_at(ax, [r["model.width"] for r in rows], fmt=lambda v: f"{v:g}")
+    ax.set_title(f"Model size, {study.scene} ({study.mode} settings)", fontsize=10)
+    S.legend_outside(ax, "below", ncols=2)
     return S.save_figure(fig, study.out / "model_size.png")
 
 

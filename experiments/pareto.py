@@ -208,9 +208,42 @@ DIVERGED_AT = 10.0
 
 
 def cost_panels() -> list[tuple[str, str]]:
-    return [(ROLLOUT, "latent rollout wall-clock per trajectory [s] (5 s horizon, 16 at once)"),
-            (COST, "rollout + decoding per trajectory [s] (the test grid, all sample times)"),
-            ("train_seconds", "training wall-clock [s] (incl. closed-form fits)")]
+    return [(ROLLOUT, S.metric_label(ROLLOUT) + "\n(latent rollout only, all test trajectories at once)"),
+            (COST, S.metric_label(COST) + "\n(the test grid, every sample time)"),
+            ("train_seconds", S.metric_label("train_seconds") + "\n(incl. closed-form fits)")]
+
+
+SHORT_INTEGRATOR = {"implicit_midpoint": "midpoint", "rk4": "RK4", "dopri5": "dopri5"}
+
+
+def point_label(row: dict, dim: int = 2) -> str:
+    """A compact name of a point for the chart: "w64", "k 2", "64²", "w64 tab. RK4 0.1", "GL 8²", "RK4 dt 0.1"."""
+    knob = row.get("knob")
+    get = lambda key: None if row.get(key) in (None, "") else S.fmt(row[key])  # noqa: E731
+    integ = get("integrator")
+    integ = SHORT_INTEGRATOR.get(str(integ), str(integ)) if integ else None
+    if integ == "midpoint" and get("integrator.order") == "4":
+        integ = "midpoint-4"
+    dt = f"dt {get('dt')}" if get("dt") else None
+    width = f"w{get('model.width')}" if get("model.width") else None
+    if knob == "width":
+        return width or "width"
+    if knob in ("depth", "K", "d", "k"):
+        key = {"depth": "model.depth", "K": "model.reduction_steps", "d": "model.latent_dim", "k": "model.latent_dim"}
+        return f"{knob} = {get(key[knob])}"
+    if knob == "resolution":
+        return S.per_axis(get("model.resolution"), dim)
+    if knob in OTHER_PULLBACK:
+        return " ".join(p for p in (width, "tab." if knob == "tabulated" else "exact", integ, dt) if p)
+    if knob == "quadrature":
+        if get("quadrature.order"):
+            return f"GL {S.per_axis(get('quadrature.order'), dim)}"
+        return f"uniform {S.per_axis(get('quadrature.resolution'), dim)}"
+    return " ".join(p for p in (width if S.method_of(row) == "latent_mlp" else None, integ, dt) if p) or "variant"
+
+
+def _suptitle(fig, text: str, study: S.Study) -> None:
+    fig.suptitle(f"{text}\n{S.caption(study)}", fontsize=9)
 
 
 def plot(study: S.Study, rows: list[dict], simulator: dict | None = None) -> list[Path]:
@@ -219,12 +252,15 @@ def plot(study: S.Study, rows: list[dict], simulator: dict | None = None) -> lis
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    dim = study.scene_object().body_dim
     train_rows = [r for r in rows if "train_seconds" in r and r["sweep"].split("_")[0] in ("lnf", "latent", "pod", "full")]
-    fig, axes = plt.subplots(1, 3, figsize=(19, 5.5))
+    fig, axes = plt.subplots(1, 3, figsize=(15, 6.2), layout="constrained", sharey=True)
+    to_label = []
     for ax, (xkey, xlabel) in zip(axes, cost_panels()):
         pts = train_rows if xkey == "train_seconds" else [r for r in rows if not r["sweep"].startswith("ref_")]
         x = np.array([float(r.get(xkey, np.nan)) for r in pts])
         y = np.array([float(r.get(ERR, np.nan)) for r in pts])
+        shown_y = np.where(np.isfinite(y), y, DIVERGED_AT)
         for m in S.METHODS:
             sel = [i for i, r in enumerate(pts) if S.method_of(r) == m]
             if not sel:
@@ -232,68 +268,84 @@ def plot(study: S.Study, rows: list[dict], simulator: dict | None = None) -> lis
             other = [i for i in sel if pts[i].get("knob") in OTHER_PULLBACK]
             variants = [i for i in sel if pts[i].get("knob") in VARIANT_KNOBS]
             core = [i for i in sel if i not in variants and i not in other]
-            ax.scatter(x[core], y[core], c=S.COLORS[m], marker=S.MARKERS[m], s=50, label=S.LABELS[m], zorder=3)
-            if variants:
-                ax.scatter(x[variants], y[variants], facecolors="none", edgecolors=S.COLORS[m], marker=S.MARKERS[m],
-                           s=40, label=f"{S.LABELS[m]}: quadrature / integrator / dt variants", zorder=3)
+            ok = lambda idx: [i for i in idx if np.isfinite(y[i])]  # noqa: E731
+            if ok(core):  # (no legend entry for what is not drawn)
+                ax.scatter(x[ok(core)], y[ok(core)], c=S.COLORS[m], marker=S.MARKERS[m], s=55, label=S.LABELS[m],
+                           zorder=4, alpha=0.9, edgecolors="white", linewidths=0.6)
+            if ok(variants):
+                ax.scatter(x[ok(variants)], y[ok(variants)], facecolors="none", edgecolors=S.COLORS[m],
+                           marker=S.MARKERS[m], s=45, linewidths=1.1, zorder=3, alpha=0.8,
+                           label=f"{S.LABELS[m]}: quadrature / integrator / dt variants")
             for knob, (marker, text) in OTHER_PULLBACK.items():
-                pick = [i for i in other if pts[i].get("knob") == knob]
+                pick = ok([i for i in other if pts[i].get("knob") == knob])
                 if pick:
-                    ax.scatter(x[pick], y[pick], c=S.COLORS[m], marker=marker, s=90, zorder=4,
-                               label=f"{S.LABELS[m]}, {text}")
+                    ax.scatter(x[pick], y[pick], c=S.COLORS[m], marker=marker, s=95, zorder=4, alpha=0.85,
+                               edgecolors="white", linewidths=0.6, label=f"{S.LABELS[m]}, {text}")
             failed = [i for i in sel if np.isfinite(x[i]) and not np.isfinite(y[i])]
-            if failed:  # a diverged rollout's error is inf: drawn at the top, marked ×
-                ax.scatter(x[failed], np.full(len(failed), DIVERGED_AT), c=S.COLORS[m], marker="x", s=60, zorder=4,
+            if failed:  # a diverged rollout's error is inf: drawn in a band at the top
+                ax.scatter(x[failed], np.full(len(failed), DIVERGED_AT), c=S.COLORS[m], marker="X", s=60, zorder=4,
+                           alpha=0.8, edgecolors="k", linewidths=0.5,
                            label=f"{S.LABELS[m]}: diverged (drawn at {DIVERGED_AT:g})")
-            for i in core + other:
-                knob = pts[i].get("knob")
-                key = {"width": "model.width", "depth": "model.depth", "K": "model.reduction_steps",
-                       "d": "model.latent_dim", "k": "model.latent_dim", "resolution": "model.resolution",
-                       "tabulated": "model.width", "exact": "model.width"}.get(knob)
-                if key and key in pts[i]:
-                    text = f"{knob}={pts[i][key]}" if knob not in OTHER_PULLBACK else (
-                        f"w={pts[i][key]} {pts[i].get('integrator', 'midpoint')} {pts[i].get('dt') or ''}")
-                    ax.annotate(text, (x[i], y[i] if np.isfinite(y[i]) else DIVERGED_AT), fontsize=6, xytext=(3, 3),
-                                textcoords="offset points")
+        if np.any(np.isfinite(x) & ~np.isfinite(y)):
+            ax.axhspan(DIVERGED_AT / 1.7, DIVERGED_AT * 1.7, color="0.92", zorder=0, lw=0)
         front = S.pareto_mask(x, y)
         order = np.argsort(x[front])
-        ax.step(x[front][order], y[front][order], where="post", color="k", lw=1, ls="--", label="Pareto front", zorder=2)
-        for m in ("lnf", "latent_mlp"):  # each method's own front: the acceptance compares these two
+        ax.step(x[front][order], y[front][order], where="post", color="k", lw=1.1, ls="--", zorder=2,
+                label="Pareto front" if front.sum() > 1 else None)  # one point: no line to name
+        labelled = set(np.flatnonzero(front))
+        for m in S.METHODS:  # each method's own front; the acceptance compares ours with the black box's
             sel = np.array([S.method_of(r) == m for r in pts])
-            if sel.any():
-                own = S.pareto_mask(np.where(sel, x, np.nan), np.where(sel, y, np.nan))
+            if not sel.any():
+                continue
+            own = S.pareto_mask(np.where(sel, x, np.nan), np.where(sel, y, np.nan))
+            labelled |= set(np.flatnonzero(own))
+            if m in ("lnf", "latent_mlp"):
                 order = np.argsort(x[own])
-                ax.step(x[own][order], y[own][order], where="post", color=S.COLORS[m], lw=0.8, ls=":", zorder=2,
-                        label=f"front of {S.LABELS[m]}")
+                ax.step(x[own][order], y[own][order], where="post", color=S.COLORS[m], lw=0.9, ls=":", zorder=2,
+                        label=f"front of {S.LABELS[m]}" if own.sum() > 1 else None)
         if simulator and xkey != "train_seconds":
             ax.axvline(simulator["simulator_seconds_per_trajectory"], color="tab:gray", lw=1.2,
                        label=f"the scene's full-order simulator (ground truth, error 0), "
                              f"{simulator['simulator_seconds_per_trajectory']:.3g} s")
         ax.set_xscale("log")
         ax.set_yscale("log")
-        ax.set_xlabel(xlabel, fontsize=8)
-        ax.set_ylabel("test field_rel_l2, extrapolation (t ≥ 2.5 s), median")
-        ax.grid(True, which="both", alpha=0.3)
-    axes[0].legend(fontsize=6, loc="best")
-    if simulator:
-        axes[1].legend(fontsize=6, loc="best")
-    fig.suptitle(f"Accuracy vs cost, {study.scene} — {S.caption(study)}", fontsize=9)
+        ax.set_xlabel(xlabel)
+        ax.grid(True, which="major", alpha=0.35)
+        ax.grid(True, which="minor", alpha=0.12)
+        keep = sorted(labelled, key=lambda i: x[i])
+        to_label.append((ax, [x[i] for i in keep], [y[i] for i in keep], [point_label(pts[i], dim) for i in keep],
+                         list(zip(x, shown_y))))
+    axes[0].set_ylabel(S.metric_label(ERR, wrap=True))
+    for ax in axes:
+        S.readable_log_ticks(ax)
+    S.figure_legend(fig, axes, ncols=3)
+    _suptitle(fig, f"Accuracy against cost, {study.scene} (labels: the points on a Pareto front)", study)
+    for ax, xs, ys, texts, avoid in to_label:  # after the layout is final: measured where they will be drawn
+        S.place_labels(ax, xs, ys, texts, fontsize=7.5, avoid=avoid)
     out = [S.save_figure(fig, study.out / "pareto.png")]
 
-    fig, ax = plt.subplots(figsize=(6.5, 4.5))
-    dim = study.scene_object().body_dim
-    for prefix, name in [("", "width-64 model of this study"), ("ref_", "--quadrature-ckpt model")]:
-        for kind, style in [("gauss_legendre", "o-"), ("uniform", "s--")]:
+    fig, ax = plt.subplots(figsize=(6.4, 5.0), layout="constrained")
+    width = {"smoke": 16, "reduced": 64, "full": 256}[study.mode]  # reference_checkpoint's
+    models = [("", f"width-{width} model of this study"), ("ref_", "--quadrature-ckpt model")]
+    for k, (prefix, name) in enumerate(models):
+        for kind, marker, ls, dodge in [("gauss_legendre", "o", "-", 0.97), ("uniform", "s", "--", 1.03)]:
             sel = sorted((r for r in rows if r["sweep"].startswith(f"{prefix}quad_") and r.get("quadrature") == kind
                           and (prefix or not r["sweep"].startswith("ref_"))), key=n_quadrature_points)
-            if sel:
+            if sel:  # uniform hollow and a little to the right: a rule with the same points and error stays visible
                 err = np.array([float(r["field_rel_l2/all/median"]) for r in sel])
-                S.plot_marking_failures(ax, np.array([n_quadrature_points(r, dim) for r in sel]), err, ~np.isfinite(err),
-                                        style, label=f"{kind.replace('_', '–')} ({name})")
+                S.plot_marking_failures(ax, np.array([n_quadrature_points(r, dim) for r in sel]) * dodge, err,
+                                        ~np.isfinite(err), marker=marker, ls=ls,
+                                        color=f"C{2 * k + (kind == 'uniform')}",
+                                        markerfacecolor="white" if kind == "uniform" else None,
+                                        markeredgecolor=None if kind == "uniform" else "white", markeredgewidth=1.2,
+                                        label=f"{'Gauss–Legendre' if kind == 'gauss_legendre' else 'uniform'} "
+                                              f"({name})")
     ax.set_xlabel("quadrature points inside the reduced dynamics")
-    ax.set_ylabel("test field_rel_l2 (all), median")
-    S.log_axes(ax)
-    ax.set_title(f"Quadrature of the reduced dynamics ({study.scene})", fontsize=9)
+    ax.set_ylabel(S.metric_label("field_rel_l2/all/median", wrap=True))
+    S.log_axes(ax, legend="none")
+    S.ticks_at(ax, [n_quadrature_points(r, dim) for r in rows if "quad_" in r["sweep"]])
+    S.figure_legend(fig, [ax], ncols=1)
+    ax.set_title(f"Quadrature of the reduced dynamics, {study.scene}\n(a diverged rollout: × at 10)", fontsize=10)
     out.append(S.save_figure(fig, study.out / "quadrature.png"))
     return out
 

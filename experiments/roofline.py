@@ -184,30 +184,32 @@ def main(argv=None) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(7, 5))
+    fig, ax = plt.subplots(figsize=(7.5, 6.2), layout="constrained")
     f = np.array([r["flops"] for r in rows])
     xs = np.geomspace(f.min() / 2, f.max() * 2, 50)
-    ax.plot(xs, xs / peak, "k-", label=f"bound: FLOPs / {peak / 1e9:.0f} GFLOP/s (matmul peak, same run)")
+    ax.plot(xs, xs / peak, "k-", lw=1.2, label=f"bound: FLOPs / {peak / 1e9:.0f} GFLOP/s (matmul peak, same run)")
     ax.plot(xs, 3 * xs / peak, "k--", lw=0.8, label="3× the bound")
-    for w, mk in zip(widths, "os^"):
+    for k, w in enumerate(widths):
         sel = [r for r in rows if r["method"] == "lnf" and r["width"] == w]
-        ax.plot([r["flops"] for r in sel], [r["seconds"] for r in sel], marker=mk, label=f"width {w} (B = {batches})")
+        ax.plot([r["flops"] for r in sel], [r["seconds"] for r in sel], marker="os^Dv"[k % 5],
+                ls=["-", "--", "-.", ":"][k % 4], color=f"C{k}", lw=1.5, alpha=0.85, markeredgecolor="white",
+                markeredgewidth=0.6, label=f"LNF width {w} (B = {', '.join(map(str, batches))} trajectories)")
     for r in rows:
         if r["method"] != "lnf":
             ax.scatter([r["flops"]], [r["seconds"]], marker=S.MARKERS[r["method"]], color=S.COLORS[r["method"]], s=60,
+                       edgecolors="k", linewidths=0.5, zorder=4,
                        label=f"{S.LABELS[r['method']]} (B = {r['batch']}), {r['ratio']:.0f}× its bound")
     dflt = [r for r in rows if r["default"]]
     if dflt:
-        ax.scatter([dflt[0]["flops"]], [dflt[0]["seconds"]], s=250, facecolors="none", edgecolors="r", lw=2,
+        ax.scatter([dflt[0]["flops"]], [dflt[0]["seconds"]], s=250, facecolors="none", edgecolors="r", lw=2, zorder=5,
                    label=f"default: width {default_width}, B = {DEFAULT_BATCH} ({dflt[0]['ratio']:.1f}× bound)")
-    ax.set_xscale("log")
-    ax.set_yscale("log")
     jets = "value, J, H, ∇_X φ, ∂(∇_X φ)/∂q̃" if spatial else "value, J, H"
-    ax.set_xlabel(f"matmul FLOPs of one RK4 step ({jets} at {order_text(order)} Gauss–Legendre points)")
-    ax.set_ylabel("measured time of one RK4 step [s]")
-    ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=7)
-    ax.set_title(f"Roofline of the reduced dynamics, {study.scene} (d = {latent}) — {S.caption(study)}", fontsize=8)
+    ax.set_xlabel(f"{S.metric_label('flops')}\n({jets} at {order_text(order)} Gauss–Legendre points)")
+    ax.set_ylabel(S.metric_label("seconds"))
+    S.log_axes(ax, legend="none")
+    S.figure_legend(fig, [ax], ncols=1)
+    ax.set_title(f"Roofline of the reduced dynamics, {study.scene} (d = {latent})", fontsize=10)
+    fig.suptitle(S.caption(study), fontsize=8)
     fig_path = S.save_figure(fig, study.out / "roofline.png")
     text = (f"# Roofline ({study.scene}, d = {latent}, {study.mode} settings)\n\nMachine: {study.machine()}; matmul "
             f"peak {peak / 1e9:.1f} GFLOP/s ({shape}). Command: `{study.command()}`.\n\n"

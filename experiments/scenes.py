@@ -57,7 +57,7 @@ from lnf import metrics as M  # noqa: E402
 from lnf.evaluate import ensure_code_range  # noqa: E402
 from lnf.evaluation import evaluate_rollouts, long_horizon_energy, trajectory_controls  # noqa: E402
 from lnf.model import load  # noqa: E402
-from lnf.plotting import save_figure  # noqa: E402
+from lnf.plotting import _subscript, save_figure  # noqa: E402
 from lnf.train import fit_latent_dynamics  # noqa: E402
 from lnf.training.callbacks import write_json_atomic  # noqa: E402
 from lnf.training.datamodule import SnapshotDataModule  # noqa: E402
@@ -99,23 +99,31 @@ def _figure() -> tuple[Any, Any]:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    return plt.subplots(figsize=(5, 3.4), layout="constrained")
+    return plt.subplots(figsize=(5.8, 4.2), layout="constrained")
 
 
 def _ours_against_reference(times: np.ndarray, ours: np.ndarray, reference: np.ndarray, ylabel: str, title: str,
                             path: Path, horizon: float | None = None, n: int = 3) -> Path:
     """One quantity (n_traj, T) over time for the first `n` trajectories, ours (solid) and the reference's
     (dotted)."""
+    from matplotlib.lines import Line2D
+
     fig, ax = _figure()
-    for i in range(min(n, len(ours))):
-        ax.plot(times, ours[i], color=f"C{i}")
-        ax.plot(times, reference[i], color=f"C{i}", ls=":")
+    shown = min(n, len(ours))
+    for i in range(shown):
+        ax.plot(times, reference[i], color=f"C{i}", ls=":", lw=1.8)
+        ax.plot(times, ours[i], color=f"C{i}", lw=1.3, alpha=0.9)
+    handles = [Line2D([], [], color="0.3", lw=1.3, label="ours"),
+               Line2D([], [], color="0.3", ls=":", lw=1.8, label="full-order reference")]
     if horizon is not None:
         ax.axvline(horizon, color="k", ls="--", lw=0.8)
-    ax.set_xlabel("t [s]")
+        handles.append(Line2D([], [], color="k", ls="--", lw=0.8, label="training horizon"))
+    handles += [Line2D([], [], color=f"C{i}", lw=4, label=f"test trajectory {i}") for i in range(shown)]
+    ax.set_xlabel("time t [s]")
     ax.set_ylabel(ylabel)
-    ax.set_title(f"{title}\nsolid: ours, dotted: full-order reference"
-                 + (", dashed: training horizon" if horizon else ""), fontsize=8)
+    ax.grid(alpha=0.3)
+    ax.set_title(title, fontsize=9)
+    studylib.legend_outside(ax, "below", handles=handles, ncols=3)
     return save_figure(fig, path)
 
 
@@ -135,7 +143,8 @@ def _probe_figure(ev: Any, path: Path, title: str, horizon: float | None = None,
     where = ", ".join(f"{x:.3g}" for x in ev.points[point])
     return _ours_against_reference(ev.times, ev.pred_fields[:, :, point, component],
                                    ev.true_fields[:, :, point, component],
-                                   f"q{component + 1} at X = ({where})", title, path, horizon)
+                                   f"field component q{_subscript(component + 1)} at X = ({where})", title, path,
+                                   horizon)
 
 
 def pick(metrics: dict[str, float], *keys: str) -> dict[str, float]:
@@ -201,12 +210,13 @@ def black_box(ctx: Context) -> dict[str, Any]:
     result["drift_ratio_median"] = drift_bb["energy_drift_long/median"] / max(drift_ours["energy_drift_long/median"], 1e-300)
     vpt_ours, vpt_bb = _vpt_per_trajectory(ours), _vpt_per_trajectory(bb)
     fig, ax = _figure()
-    ax.hist([vpt_ours, vpt_bb], bins=10, label=[f"ours (median {np.median(vpt_ours):.2f} s)",
-                                                 f"black box (median {np.median(vpt_bb):.2f} s)"])
-    ax.axvline(horizon, color="k", ls="--", lw=0.8)
-    ax.set_xlabel("valid prediction time [s]")
+    ax.hist([vpt_ours, vpt_bb], bins=10, color=[studylib.COLORS["lnf"], studylib.COLORS["latent_mlp"]],
+            label=[f"ours (median {np.median(vpt_ours):.2f} s)", f"black box (median {np.median(vpt_bb):.2f} s)"])
+    ax.axvline(horizon, color="k", ls="--", lw=0.8, label="training horizon")
+    ax.set_xlabel(studylib.metric_label("vpt") + " of each test trajectory")
     ax.set_ylabel("test trajectories")
-    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3, axis="y")
+    studylib.legend_outside(ax, "below", ncols=2)
     save_figure(fig, ctx.out / "vpt.png")
     return result
 
@@ -250,13 +260,17 @@ def modes(ctx: Context) -> dict[str, Any]:
     d = int(model.latent_dim)
     fig, ax = _figure()
     ks = [r["k"] for r in pod_rows]
-    ax.semilogy(ks, [r["field_rel_l2/all/median"] for r in pod_rows], "s-", label="POD-Galerkin rollout")
-    ax.semilogy(range(1, max_modes + 1), oracle, "k:", label="best linear k-mode projection (full-grid SVD)")
-    ax.semilogy([d], [ours_err], "o", ms=9, color="C3", label=f"ours, d = {d} ({ours_err:.3f})")
-    ax.axhline(ours_err, color="C3", lw=0.8, ls="--")
+    ax.semilogy(ks, [r["field_rel_l2/all/median"] for r in pod_rows], "s-", color=studylib.COLORS["pod"], alpha=0.85,
+                label="POD-Galerkin rollout")
+    ax.semilogy(range(1, max_modes + 1), oracle, "k:", marker=".", label="best linear k-mode projection (full-grid SVD)")
+    ax.semilogy([d], [ours_err], "o", ms=9, color=studylib.COLORS["lnf"], label=f"ours, d = {d} ({ours_err:.3f})",
+                zorder=4)
+    ax.axhline(ours_err, color=studylib.COLORS["lnf"], lw=0.8, ls="--")
     ax.set_xlabel("modes k (POD) / latent dimension d (ours)")
-    ax.set_ylabel("test field_rel_l2 (all, median)")
-    ax.legend(fontsize=8)
+    ax.set_xticks(range(1, max_modes + 1))
+    ax.set_ylabel(studylib.metric_label("field_rel_l2/all/median", wrap=True))
+    ax.grid(alpha=0.3, which="both")
+    studylib.legend_outside(ax, "below", ncols=1)
     save_figure(fig, ctx.out / "modes.png")
     return {"ours": pick(ours.metrics, "field_rel_l2/all/median", "field_rel_l2/in_horizon/median",
                          "field_rel_l2/extrapolation/median", "projection_rel_l2/all/median", "energy_rel_err/median"),
@@ -356,7 +370,8 @@ def speedup(ctx: Context) -> dict[str, Any]:
     title = f"test trajectories, implicit midpoint, dt = {times[1] - times[0]:g} s"
     if "kinetic_true" in e:  # a scene without reference energies has no energy figure
         _ours_against_reference(times, (e["kinetic_pred"] + e["potential_pred"]) / scene.energy_scale,
-                                (e["kinetic_true"] + e["potential_true"]) / scene.energy_scale, "energy / E_scale",
+                                (e["kinetic_true"] + e["potential_true"]) / scene.energy_scale,
+                                "total energy / E_scale",
                                 title, ctx.out / "energy.png", horizon)
     _probe_figure(base, ctx.out / "tip.png", title, horizon)
     return result
@@ -428,7 +443,7 @@ def decay(ctx: Context) -> dict[str, Any]:
     e = ev.energies
     pred = e["kinetic_pred"] + e["potential_pred"]
     true = e["kinetic_true"] + e["potential_true"]
-    _ours_against_reference(times, pred / scene.energy_scale, true / scene.energy_scale, "energy / E_scale",
+    _ours_against_reference(times, pred / scene.energy_scale, true / scene.energy_scale, "total energy / E_scale",
                             "free decay (no load)", ctx.out / "decay.png")
     rise = np.max(np.diff(pred, axis=1), axis=1) / scene.energy_scale
     return {"free_decay": {**pick(ev.metrics, *LOAD_KEYS),

@@ -44,9 +44,11 @@ def plot(study: S.Study, rows: list[dict]) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 2, figsize=(12, 4.5), gridspec_kw={"wspace": 0.3})
-    for ax, knob, key, xlabel in [(axes[0], "fraction", "data.observed_fraction", "observed share of the coarse grid (data.coarse_resolution)"),
-                                  (axes[1], "noise", "data.noise", "observation noise (std / RMS)")]:
+    fig, axes = plt.subplots(1, 2, figsize=(11.5, 5.0), layout="constrained", sharey=True)
+    percent = lambda v: f"{100 * v:g} %"  # noqa: E731
+    for ax, knob, key in [(axes[0], "fraction", "data.observed_fraction"), (axes[1], "noise", "data.noise")]:
+        xlabel = S.metric_label(key)
+        shown = []
         for m in ("lnf", "latent_mlp", "pod"):
             sel = [r for r in rows if r["method"] == m and r["knob"] == knob]
             if knob == "noise":  # noise 0 is the 25 % point of the fraction sweep
@@ -55,20 +57,36 @@ def plot(study: S.Study, rows: list[dict]) -> Path:
             if not sel:  # a method the scene cannot run: no empty legend entry
                 continue
             sel = sorted(sel, key=lambda r: float(r[key]))
-            x = np.array([float(r[key]) for r in sel]) + (1e-3 if knob == "noise" else 0.0)
-            S.plot_marking_failures(ax, x, np.array([float(r[ERR]) for r in sel]),
+            x = np.array([float(r[key]) for r in sel])
+            shown += list(x)
+            # coincident curves stay visible: each method its own line style and a small sideways dodge
+            xd = S.dodged(x, m, log=knob == "fraction")
+            S.plot_marking_failures(ax, xd, np.array([float(r[ERR]) for r in sel]),
                                     np.array([float(r.get("diverged_fraction", 0)) > 0 for r in sel], bool),
-                                    marker=S.MARKERS[m], color=S.COLORS[m], label=S.LABELS[m])
+                                    marker=S.MARKERS[m], color=S.COLORS[m], ls=S.LINESTYLES[m], lw=1.6,
+                                    label=S.LABELS[m])
         ref = [r for r in rows if r["method"] == "full_order"]
         if ref and np.isfinite(float(ref[0][ERR])):
-            ax.axhline(float(ref[0][ERR]), color=S.COLORS["full_order"], ls="--", label="full order (no training data)")
+            ax.axhline(float(ref[0][ERR]), color=S.COLORS["full_order"], ls=(0, (5, 3)), lw=1.2,
+                       label="full order (no training data)")
         elif ref:  # no line at infinity: say so in the legend
-            ax.plot([], [], color=S.COLORS["full_order"], ls="--", label="full order (no training data): diverged")
-        ax.set_xlabel(xlabel + (" (+0.001 so that 0 shows)" if knob == "noise" else ""))
-        ax.set_ylabel("test field_rel_l2 (all), median")
-        S.log_axes(ax)
+            ax.plot([], [], color=S.COLORS["full_order"], ls=(0, (5, 3)), label="full order (no training data): diverged")
+        ax.set_xlabel(xlabel)
+        ax.set_yscale("log")
+        ax.grid(True, which="major", alpha=0.35)
+        ax.grid(True, which="minor", alpha=0.12)
+        if knob == "fraction":
+            ax.set_xscale("log")
+            S.ticks_at(ax, shown, fmt=percent)
+        elif shown:
+            ticks = sorted(set(shown))
+            ax.set_xticks(ticks, [percent(v) for v in ticks])
+        S.readable_log_ticks(ax)
+        S.legend_outside(ax, "below", ncols=2)
+    axes[0].set_ylabel(S.metric_label(ERR, wrap=True))
     fig.suptitle(f"Sparse and noisy training data, {study.scene}"
-                 " (× = at least one test rollout diverged; a diverged median is drawn at 10)\n" + S.caption(study),
+                 " (× = at least one test rollout diverged; a diverged median is drawn at 10;\n"
+                 f"{S.DODGE_NOTE})\n" + S.caption(study),
                  fontsize=9)
     return S.save_figure(fig, study.out / "sparse_noisy.png")
 

@@ -195,16 +195,39 @@ def failure_dt(rows: list[dict]) -> float:
 STYLES = {"implicit_midpoint": "-", "rk4": ":"}
 
 
-def error_lines(ax, rows: list[dict], combos: list[tuple[str, str]], sub_study: str, x_of) -> None:
-    """Test field error against x_of(row), one line per (method, integrator) of `sub_study`, failures marked."""
-    for m, integ in combos:
+def _dodge(x: Any, k: int, n: int, log: bool = False, categorical: bool = False) -> np.ndarray:
+    """x of the k-th of n curves moved a little sideways (:func:`studylib.dodged`; on a categorical axis by 0.07 of
+    a category per step), so that curves with equal values stay visible."""
+    c = k - (n - 1) / 2
+    if categorical:
+        return np.asarray(x, float) + 0.07 * c
+    return S.dodged(x, "", log=log, steps=c)
+
+
+def _combo_style(m: str, integ: str) -> dict:
+    return dict(marker=S.MARKERS[m], color=S.COLORS[m], ls=STYLES[integ], lw=1.5)
+
+
+def error_lines(ax, rows: list[dict], combos: list[tuple[str, str]], sub_study: str, x_of, log_x: bool = False) -> None:
+    """Test field error against x_of(row), one line per (method, integrator) of `sub_study`, failures marked; the
+    lines a little apart sideways (see :func:`_dodge`)."""
+    for k, (m, integ) in enumerate(combos):
         sel = sorted((r for r in rows if r.get("study") == sub_study and r["method"] == m
                       and r["integrator_name"] == integ), key=x_of)
         if sel:
-            S.plot_marking_failures(ax, np.array([x_of(r) for r in sel]),
+            S.plot_marking_failures(ax, _dodge([x_of(r) for r in sel], k, len(combos), log_x),
                                     np.array([float(r["field_rel_l2/all/median"]) for r in sel]), _diverged(sel),
-                                    STYLES[integ], marker=S.MARKERS[m], color=S.COLORS[m],
-                                    label=f"{S.LABELS[m]}, {SHORT[integ]}")
+                                    **_combo_style(m, integ), label=f"{S.LABELS[m]}, {SHORT[integ]}")
+
+
+def _horizon_text(rows: list[dict], factor: int) -> str:
+    """ "20× the training horizon (50 s)": the factor and what the rows of it rolled out."""
+    row = next((r for r in rows if r.get("study") == "long" and int(r["horizon_factor"]) == factor), {})
+    if row.get("horizon") not in (None, ""):
+        return f"{factor}× the training horizon\n({S.fmt(row['horizon'])} s)"
+    if row.get("long_steps") not in (None, ""):
+        return f"{factor}× the training horizon\n({S.fmt(row['long_steps'])} steps, no reference)"
+    return f"{factor}× the training horizon"
 
 
 def plot(study: S.Study, rows: list[dict]) -> Path:
@@ -212,73 +235,99 @@ def plot(study: S.Study, rows: list[dict]) -> Path:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Patch
 
-    fig, axes = plt.subplots(2, 2, figsize=(13, 9))
+    fig, axes = plt.subplots(2, 2, figsize=(13, 10), layout="constrained")
     combos = [(m, i) for m in methods(study) for i in INTEGRATORS[m]]
+    n = len(combos)
 
-    ax = axes[0, 0]
-    width = 0.8 / len(combos)
+    ax = axes[0, 0]  # long horizons: energy drift at 20× and 200× the training horizon
+    factors = sorted({int(r["horizon_factor"]) for r in rows if r.get("study") == "long"}) or [20]
+    n_long = max((int(float(r.get("max_trajectories", 4) or 4)) for r in rows if r.get("study") == "long"), default=4)
     for k, (m, integ) in enumerate(combos):
-        for j, factor in enumerate([20, 200]):
-            sel = [r for r in rows if r.get("study") == "long" and r["method"] == m and r["integrator_name"] == integ
-                   and int(r["horizon_factor"]) == factor]
-            if not sel:
-                continue
-            drift = _drift(sel[0])
-            x = j + (k - len(combos) / 2) * width
-            diverged = float(sel[0].get("diverged_fraction", 0)) > 0 or not np.isfinite(drift)
-            ax.bar(x, drift if np.isfinite(drift) else 1.0, width, color=S.COLORS[m],
-                   hatch="//" if integ == "rk4" else None, edgecolor="k",
-                   label=f"{S.LABELS[m]}, {SHORT[integ]}" if j == 0 else None)
-            if diverged:
-                ax.text(x, 1.0, "×", ha="center", color="k")
-    ax.set_xticks([0, 1], ["20× training horizon (50 s)", "200× (500 s)"])
+        sel = [next((r for r in rows if r.get("study") == "long" and r["method"] == m and r["integrator_name"] == integ
+                     and int(r["horizon_factor"]) == f), None) for f in factors]
+        if not any(sel):
+            continue
+        drift = np.array([_drift(r) if r else np.nan for r in sel])
+        failed = np.array([bool(r) and (float(r.get("diverged_fraction", 0)) > 0 or not np.isfinite(_drift(r)))
+                           for r in sel])
+        x = _dodge(np.arange(len(factors)), k, n, categorical=True)
+        have = np.array([r is not None for r in sel])
+        S.plot_marking_failures(ax, x[have], drift[have], failed[have], **_combo_style(m, integ))
+    ax.set_xticks(np.arange(len(factors)), [_horizon_text(rows, f) for f in factors])
+    ax.set_xlim(-0.5, len(factors) - 0.5)
     ax.set_yscale("log")
-    ax.set_ylabel("energy drift max_t |Ẽ(t) − Ẽ(0)| / E_scale\n(max over 4 trajectories)")
-    ax.legend(fontsize=7)
-    ax.set_title("Long horizons (× = diverged)", fontsize=9)
+    ax.set_ylabel(S.metric_label("energy_drift/max", over=f"{n_long} trajectories", wrap=True))
+    ax.set_title("Long horizons", fontsize=10)
 
     ax = axes[0, 1]
     cases = stress_cases(study)
     if cases is not None:
+        levels = [_level(r) for r in rows if r.get("study") == "high_energy"]
+        span = (max(levels) - min(levels)) if len(levels) > 1 else 1.0
         error_lines(ax, rows, combos, "high_energy", _level)
-        ax.axvspan(0, cases.train_edge, color="0.9", label=cases.train_text)
+        if levels:  # the levels tried, the training range's edge shaded from the left (not from 0: it would fill it)
+            lo, hi = min(levels) - 0.08 * span, max(levels) + 0.08 * span
+            ax.set_xlim(lo, hi)
+            if cases.train_edge > lo:
+                ax.axvspan(lo, min(cases.train_edge, hi), color="0.9", zorder=0)
         ax.set_xlabel(cases.xlabel)
-        ax.set_ylabel("field_rel_l2 over 5 s (× = diverged, drawn at 10)")
+        ax.set_ylabel("relative L² field error\n(one released trajectory per point)")
         ax.set_yscale("log")
-        ax.legend(fontsize=7)
     else:  # nothing to draw: say why on the panel
         ax.text(0.5, 0.5, "skipped: the scene declares no\nstability_cases() (its release amplitudes)",
-                ha="center", va="center", transform=ax.transAxes, fontsize=9)
+                ha="center", va="center", transform=ax.transAxes, fontsize=10)
         ax.set_xticks([])
         ax.set_yticks([])
-    ax.set_title("High energy, beyond the training range", fontsize=9)
+    ax.set_title("High energy, beyond the training range", fontsize=10)
 
     ax = axes[1, 0]
-    error_lines(ax, rows, combos, "dt", lambda r: float(r["dt"]))
+    n_dt = max((int(float(r.get("max_trajectories", 8) or 8)) for r in rows if r.get("study") == "dt"), default=8)
+    error_lines(ax, rows, combos, "dt", lambda r: float(r["dt"]), log_x=True)
     ax.set_xscale("log")
     ax.set_yscale("log")
-    ax.set_xlabel("time step dt [s]")
-    ax.set_ylabel("field_rel_l2 over 5 s\n(× = diverged in ≥ 1 trajectory)")
-    ax.legend(fontsize=7)
-    ax.set_title("Large time steps", fontsize=9)
+    S.ticks_at(ax, [r["dt"] for r in rows if r.get("study") == "dt"])
+    ax.set_xlabel(S.metric_label("dt"))
+    ax.set_ylabel(S.metric_label("field_rel_l2/all/median", split=f"{n_dt} test trajectories", wrap=True))
+    ax.set_title("Large time steps (× = diverged in ≥ 1 trajectory)", fontsize=10)
 
     ax = axes[1, 1]
-    labels = []
+    labels: list[str] = []
     dim = study.scene_object().body_dim
-    for k, m in enumerate(methods(study)):
+    ms = methods(study)
+    for k, m in enumerate(ms):
         sel = [r for r in rows if r.get("study") == "resolution" and r["method"] == m]
         sel = sorted(sel, key=lambda r: (r.get("grid.kind") == "random", int(r.get("grid.resolution", 0) or 0)))
-        names = [grid_name(r, dim).replace("random", "4096 random") for r in sel]
-        labels = labels or names
-        ax.bar(np.arange(len(sel)) + (k - 1.5) * 0.2, [float(r["field_rel_l2/all/median"]) for r in sel], 0.2,
-               color=S.COLORS[m], label=S.LABELS[m])
+        if not sel:
+            continue
+        names = [grid_name(r, dim).replace("random", f"{int(float(r.get('grid.n_points') or 4096))} random")
+                 for r in sel]
+        labels = labels if len(labels) >= len(names) else names
+        integ = sel[0]["integrator_name"]
+        S.plot_marking_failures(ax, _dodge(np.arange(len(sel)), k, len(ms), categorical=True),
+                                np.array([float(r["field_rel_l2/all/median"]) for r in sel]), _diverged(sel),
+                                **_combo_style(m, integ))
     ax.set_xticks(np.arange(len(labels)), labels)
+    ax.set_xlim(-0.5, max(len(labels), 1) - 0.5)
     ax.set_yscale("log")
-    ax.set_ylabel("test field_rel_l2 (all), median")
-    ax.set_title("Resolution transfer (grids not seen in training)", fontsize=9)
-    ax.legend(fontsize=7)
-    fig.suptitle(f"Stability, {study.scene} — {S.caption(study)}", fontsize=9)
+    ax.set_xlabel("evaluation points (not seen in training)")
+    ax.set_ylabel(S.metric_label("field_rel_l2/all/median", wrap=True))
+    ax.set_title("Resolution transfer", fontsize=10)
+    for ax in axes.ravel():
+        ax.grid(True, which="major", alpha=0.35)
+        ax.grid(True, which="minor", alpha=0.12)
+        S.readable_log_ticks(ax)
+
+    handles = [Line2D([], [], **_combo_style(m, i), markeredgecolor="white", label=f"{S.LABELS[m]}, {SHORT[i]}")
+               for m, i in combos]
+    handles.append(Line2D([], [], marker="X", color="0.5", markeredgecolor="k", ls="none", markersize=8,
+                          label="diverged (drawn at 10)"))
+    if cases is not None:
+        handles.append(Patch(color="0.9", label=cases.train_text))
+    fig.legend(handles=handles, loc="outside lower center", ncols=4, fontsize="small", frameon=False)
+    fig.suptitle(f"Stability, {study.scene} ({S.DODGE_NOTE})\n{S.caption(study)}", fontsize=9)
     return S.save_figure(fig, study.out / "stability.png")
 
 

@@ -3,6 +3,33 @@ of continuum mechanics (modulated SIREN embedding, K-step reduction, pulled-back
 
     model = lnf.load("outputs/pendulum/runs/<date>/checkpoints/last.ckpt")
 """
+import importlib.util as _ilu
+import sys as _sys
+from pathlib import Path as _Path
+
+
+def _map_repository_configs() -> None:
+    """Make ``lnf.conf`` importable from a checkout used without installing (only ``PYTHONPATH``): an install
+    ships the repository's ``conf/`` as ``lnf.conf``; here it is mapped onto the same folder by hand."""
+    if "lnf.conf" in _sys.modules:
+        return
+    try:
+        if _ilu.find_spec("lnf.conf") is not None:
+            return
+    except (ImportError, ValueError):
+        pass
+    init = _Path(__file__).resolve().parent.parent / "conf" / "__init__.py"
+    if init.is_file():
+        spec = _ilu.spec_from_file_location("lnf.conf", init, submodule_search_locations=[str(init.parent)])
+        if spec is not None and spec.loader is not None:
+            module = _ilu.module_from_spec(spec)
+            _sys.modules["lnf.conf"] = module
+            spec.loader.exec_module(module)
+            globals()["conf"] = module
+
+
+_map_repository_configs()
+
 from lnf.integrators import RK4, Dopri5, ImplicitMidpoint, RolloutDivergedError, get_integrator
 from lnf.model import LagrangianNeuralField, build, load
 from lnf.quadrature import GaussLegendre, GivenPoints, Quadrature, UniformGrid, midpoint_grid

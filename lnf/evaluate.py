@@ -16,6 +16,7 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
+from lnf.allocator import keep_freed_memory
 from lnf.config_keys import check_known_keys
 from lnf.dataset import SOURCE_ARRAYS, SPLITS, DatasetConfig, ensure_dataset, load_split, stored_generation, verify_dataset
 from lnf.evaluation import evaluate_rollouts, evaluation_cost, long_horizon_energy, quadrature_size
@@ -162,6 +163,7 @@ def evaluate(cfg: DictConfig) -> dict[str, float]:
     """
     quiet_console()
     check_settings(cfg)
+    keep_freed_memory()  # reuse freed decoding buffers (lnf/allocator.py)
     if cfg.get("threads"):
         torch.set_num_threads(int(cfg.threads))
     output_dir = Path(cfg.paths.output_dir)
@@ -262,7 +264,7 @@ def evaluate(cfg: DictConfig) -> dict[str, float]:
     if int(cfg.figures) > 0:
         try:  # the results are written: a figure that fails (a plotting backend, a full disk) must not cost them
             save_evaluation_figures(result, scene, grid_shape, train_horizon, output_dir / "figures", cfg.split,
-                                    int(cfg.figures))
+                                    int(cfg.figures), integrator=integrator)
         except Exception as err:  # noqa: BLE001
             log.warning("could not draw Figure 3: %s: %s (metrics.json and run.json are written in %s)",
                         type(err).__name__, err, output_dir)

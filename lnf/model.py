@@ -302,7 +302,10 @@ class LagrangianNeuralField(ReducedModel):
         density = self._density(points)
         K = self.reduction_steps
         start = self._start(points, values, density)
-        codes = reduce(self.field, points, values, density, self.step_size, K, codes=start)
+        # the jet at the start serves both reductions below (ρ̃(q) and ρ̃(φ(q̃)) begin at the same codes)
+        first = self.field.jet(values.new_zeros(values.shape[0], self.field.latent_dim) if start is None else start,
+                               points, order=1)
+        codes = reduce(self.field, points, values, density, self.step_size, K, codes=start, first_jet=first)
         use_gradients = self.gradient_weight > 0 and gradients is not None
         jet = self.field.jet(codes, points, order=1, spatial=use_gradients)
         rec = reconstruction_loss(jet.value, values, density)
@@ -311,7 +314,7 @@ class LagrangianNeuralField(ReducedModel):
         mass = pullback_mass_matrix(jet.J, weights)
         # ρ̃(φ(q̃)) from the snapshot's own start: the search is a constant of the graph, and where ℓ^r is small
         # a second search over φ(q̃) lands on the same candidate at the cost of another S^d forward passes
-        reprojected = reduce(self.field, points, jet.value, density, self.step_size, K, codes=start)
+        reprojected = reduce(self.field, points, jet.value, density, self.step_size, K, codes=start, first_jet=first)
         proj = projection_loss(codes, reprojected, mass)
         total = rec + proj
         out = {"reconstruction": rec.mean(), "projection": proj.mean()}

@@ -14,11 +14,23 @@ Public API
 - :func:`figure3` -- both of the above in one figure, for a 1-, 2- or 3-D body, its fields given on a
   midpoint grid (``grid_shape``) or on scattered points (``points``: mesh nodes, random samples).
 - :func:`default_snapshot_indices` -- evenly spaced sample indices on each side of the horizon.
-- :func:`save_figure` -- atomic PNG write.
+- :func:`save_figure` -- atomic PNG write (200 dpi), with a vector PDF of the same stem beside it.
 
 Non-finite values in predictions (a diverged rollout) are plotted, not hidden and not fatal:
 lines get gaps, images show masked pixels (or triangles touching a non-finite point) in grey, colour
 limits use the finite values only.
+
+Colour scales. Fields use a diverging map symmetric about 0, its limit the largest |value| of the true
+field (or the 99th percentile of |predicted| where that is larger); predicted values beyond it saturate
+and the colour bar gets an arrow. Errors |pred − true| use a light-to-dark sequential map (small errors
+light), its limit the 99th percentile of the finite errors, so that one outlier (a corner, a diverging
+patch) does not turn the rest of the panel into a single colour; where errors exceed it the colour bar
+gets an arrow (``extend="max"``).
+
+Energies. The energy panel shows the total energy E = T + V predicted against true over the whole range
+(its drift is what a long rollout is judged by); a third panel shows the kinetic/potential exchange, over
+the whole range when the series oscillate a few times only, else in a window of a few periods around the
+training horizon (shaded on the total-energy panel), so that a 20 s rollout is no solid band.
 """
 
 from __future__ import annotations
@@ -38,16 +50,22 @@ __all__ = [
     "figure3",
     "default_snapshot_indices",
     "save_figure",
+    "vector_path",
     "ENERGY_KEYS",
 ]
 
 ENERGY_KEYS = ("kinetic_pred", "potential_pred", "kinetic_true", "potential_true")
 
 _FIELD_CMAP = "RdBu_r"
-_ERROR_CMAP = "magma"
+_ERROR_CMAP = "magma_r"  # sequential, light (small errors) to dark (large errors)
 _MASK_COLOR = "0.6"  # grey for NaN/inf pixels
 _HORIZON_STYLE = dict(color="0.35", linestyle=":", linewidth=1.2)
-_DPI = 120
+_DPI = 200
+_ERROR_PERCENTILE = 99.0  # the error colour scale ends at this percentile of the finite errors
+_MAX_PERIODS = 8  # more oscillations of the energies than this: kinetic/potential drawn in a window
+_WINDOW_PERIODS = 4  # ... of this many periods around the training horizon
+_ERROR_LABEL = "absolute error\n|pred − true|\n(field's units)"
+_X_LABELS = ("X₁", "X₂", "X₃")  # body (material) coordinates
 
 
 # --------------------------------------------------------------------------------------
@@ -187,6 +205,62 @@ def _finite_absmax(*arrays: np.ndarray, default: float = 1.0) -> float:
     return m if m > 0 else default
 
 
+def _field_scale(pred: np.ndarray, true: np.ndarray) -> tuple[float, str]:
+    """(vmax, extend) of the symmetric field colour scale [−vmax, vmax].
+
+    vmax is the largest finite |true| value (the true field's peaks are data, never outliers), raised to the
+    99th percentile of the finite |pred| values where the prediction is larger, and to the largest |pred| where
+    that is at most 5 % more; a predicted value beyond it saturates and the colour bar gets an arrow on that
+    side. Neither finite: 1."""
+    fin_p = np.abs(pred[np.isfinite(pred)])
+    vmax = _finite_absmax(true, default=0.0)
+    if fin_p.size:
+        vmax = max(vmax, float(np.percentile(fin_p, _ERROR_PERCENTILE)))
+    if not vmax > 0:
+        vmax = _finite_absmax(pred)
+    lo = hi = False
+    fin = pred[np.isfinite(pred)]
+    if fin.size:
+        top = float(np.max(np.abs(fin)))
+        if top <= 1.05 * vmax:  # hardly beyond: widen the scale rather than clip
+            vmax = max(vmax, top)
+        lo, hi = bool(fin.min() < -vmax), bool(fin.max() > vmax)
+    return vmax, {(False, False): "neither", (True, False): "min", (False, True): "max", (True, True): "both"}[(lo, hi)]
+
+
+def _error_scale(err: np.ndarray) -> tuple[float, str]:
+    """(vmax, extend) of the error colour scale [0, vmax]: the 99th percentile of the finite errors (the
+    largest one where that is 0, 1 where there is none or all are 0). extend is "max" where some finite error
+    lies above vmax (its pixels saturate), else "neither"."""
+    fin = err[np.isfinite(err)]
+    top = float(fin.max()) if fin.size else 0.0
+    if not top > 0:
+        return 1.0, "neither"
+    vmax = float(np.percentile(fin, _ERROR_PERCENTILE))
+    if not vmax > 0 or top <= vmax * 1.02:  # nothing (or hardly anything) to clip
+        return top, "neither"
+    return vmax, "max"
+
+
+def _oscillation_window(times: np.ndarray, y: np.ndarray, h: float) -> tuple[float, float] | None:
+    """A window of ``_WINDOW_PERIODS`` periods of ``y(t)`` around the training horizon ``h`` (moved inside the
+    time range), or None when y oscillates at most ``_MAX_PERIODS`` times over the range (it is readable whole).
+    Periods are counted from the crossings of y's median (finite samples only)."""
+    fin = np.isfinite(y)
+    if np.count_nonzero(fin) < 4 or times[-1] <= times[0]:
+        return None
+    s = np.sign(y[fin] - np.median(y[fin]))
+    s = s[s != 0]
+    periods = 0.5 * np.count_nonzero(s[1:] != s[:-1])
+    if periods <= _MAX_PERIODS:
+        return None
+    t0, t1 = float(times[0]), float(times[-1])
+    width = min(_WINDOW_PERIODS * (t1 - t0) / periods, t1 - t0)
+    centre = min(max(h, t0 + width / 2), t1 - width / 2)
+    a, b = (float(times[np.argmin(np.abs(times - v))]) for v in (centre - width / 2, centre + width / 2))
+    return (a, b) if b > a else (centre - width / 2, centre + width / 2)  # edges on samples: round numbers
+
+
 def _value_at(times: np.ndarray, y: np.ndarray, t0: float) -> float:
     """Linear interpolation of y(t) at t0 (NaN if a neighbouring sample is non-finite)."""
     if times.shape[0] == 1:
@@ -231,6 +305,34 @@ def _horizon_legend_handle():
     return Line2D([], [], marker="o", markersize=5, color="0.35", linestyle=":", label="training horizon")
 
 
+def _plot_gappy(ax, times: np.ndarray, y: np.ndarray, **kwargs) -> None:
+    """y(t) as a line with gaps where it is NaN; a finite sample between two gaps (the last one before a rollout
+    diverged, say), which a line cannot show, as a dot."""
+    ax.plot(times, y, **kwargs)
+    fin = np.isfinite(y)
+    alone = fin & ~np.concatenate([[False], fin[:-1]]) & ~np.concatenate([fin[1:], [False]])
+    if alone.any():
+        ax.plot(times[alone], y[alone], linestyle="none", marker="o", markersize=3.5, color=kwargs.get("color"))
+
+
+def _legend_below(ax, handles, ncol: int) -> None:
+    """The legend of ``ax`` under its x label (set that first), outside the data: it starts as far below the axes
+    as the tick labels and the label reach, in points, whatever the axes' size (constrained layout makes room)."""
+    import matplotlib as mpl
+    from matplotlib.font_manager import FontProperties
+    from matplotlib.transforms import offset_copy
+
+    rc = mpl.rcParams
+    size = lambda key: FontProperties(size=rc[key]).get_size_in_points()  # noqa: E731
+    lines = ax.get_xlabel().count("\n") + 1 if ax.get_xlabel() else 0
+    drop = (rc["xtick.major.size"] + rc["xtick.major.pad"] + 1.3 * size("xtick.labelsize")
+            + (rc["axes.labelpad"] + 1.25 * size("axes.labelsize") * lines if lines else 0) + 3.0)
+    below = offset_copy(ax.transAxes, fig=ax.get_figure(root=True), x=0.0, y=-drop, units="points")
+    ax.legend(handles=handles, fontsize="small", loc="upper center", bbox_to_anchor=(0.5, 0.0), bbox_transform=below,
+              borderaxespad=0.0, ncol=max(1, min(len(handles), ncol)), frameon=False, handlelength=2.2,
+              columnspacing=1.2)
+
+
 def _draw_latent_energy(
     fig: Figure | SubFigure,
     times: np.ndarray,
@@ -242,63 +344,126 @@ def _draw_latent_energy(
     pot_true: np.ndarray,
     h: float,
 ) -> tuple:
+    """Three panels: latent q̃(t); total energy predicted vs true over the whole range; the kinetic/potential
+    exchange, whole or (when it oscillates more than ``_MAX_PERIODS`` times) in a window of a few periods around
+    the training horizon, the window shaded on the total-energy panel."""
     from matplotlib.lines import Line2D
+    from matplotlib.patches import Patch
 
     # non-finite values (a diverged rollout) become gaps in the lines
     q_pred, q_proj, kin_pred, pot_pred, kin_true, pot_true = (
         np.where(np.isfinite(a), a, np.nan) for a in (q_pred, q_proj, kin_pred, pot_pred, kin_true, pot_true)
     )
-    ax_q, ax_e = fig.subplots(1, 2)
+    ax_q, ax_e, ax_x = fig.subplots(1, 3, width_ratios=[1.25, 1.0, 1.0])
     d = q_pred.shape[1]
     colors = [f"C{i % 10}" for i in range(d)]
+    has_h = _horizon_in_range(times, h)
+    t_hi = times[-1] if times[-1] > times[0] else times[0] + 1.0
 
     # left: latent coordinates
     handles = []
     for i in range(d):
         lbl = "q̃" if d == 1 else f"q̃{_subscript(i + 1)}"
-        ax_q.plot(times, q_pred[:, i], color=colors[i], linestyle="-", linewidth=1.6)
-        ax_q.plot(times, q_proj[:, i], color=colors[i], linestyle="--", linewidth=1.4)
+        _plot_gappy(ax_q, times, q_pred[:, i], color=colors[i], linestyle="-", linewidth=1.5)
+        _plot_gappy(ax_q, times, q_proj[:, i], color=colors[i], linestyle="--", linewidth=1.3)
         handles.append(Line2D([], [], color=colors[i], linestyle="-", label=f"{lbl} predicted"))
         handles.append(Line2D([], [], color=colors[i], linestyle="--", label=f"{lbl} projected"))
     _mark_horizon(ax_q, times, [(q_pred[:, i], colors[i]) for i in range(d)], h)
-    if _horizon_in_range(times, h):
+    if has_h:
         handles.append(_horizon_legend_handle())
-    ax_q.set_xlabel("t [s]")
-    ax_q.set_ylabel("q̃")
+    ax_q.set_xlabel("time t [s]")
+    ax_q.set_ylabel("latent coordinate q̃" if d == 1 else "latent coordinates q̃ᵢ")
     ax_q.set_title("latent coordinates")
-    ax_q.legend(handles=handles, fontsize="small", loc="upper center", bbox_to_anchor=(0.5, -0.17),
-                ncol=min(len(handles), 3), frameon=False)
-    ax_q.grid(alpha=0.3)
+    _legend_below(ax_q, handles, 2 if d > 1 else 3)
 
-    # right: energies
-    c_kin, c_pot = "C3", "C0"
-    ax_e.plot(times, kin_pred, color=c_kin, linestyle="-", linewidth=1.6)
-    ax_e.plot(times, kin_true, color=c_kin, linestyle="--", linewidth=1.4)
-    ax_e.plot(times, pot_pred, color=c_pot, linestyle="-", linewidth=1.6)
-    ax_e.plot(times, pot_true, color=c_pot, linestyle="--", linewidth=1.4)
-    _mark_horizon(ax_e, times, [(kin_pred, c_kin), (pot_pred, c_pot)], h)
-    e_handles = [
-        Line2D([], [], color=c_kin, linestyle="-", label="kinetic predicted"),
-        Line2D([], [], color=c_kin, linestyle="--", label="kinetic true"),
-        Line2D([], [], color=c_pot, linestyle="-", label="potential predicted"),
-        Line2D([], [], color=c_pot, linestyle="--", label="potential true"),
-    ]
-    if _horizon_in_range(times, h):
+    # middle: total energy over the whole range
+    c_tot, c_kin, c_pot = "k", "C3", "C0"
+    tot_pred, tot_true = kin_pred + pot_pred, kin_true + pot_true
+    _plot_gappy(ax_e, times, tot_true, color="0.55", linestyle="--", linewidth=1.6)
+    _plot_gappy(ax_e, times, tot_pred, color=c_tot, linestyle="-", linewidth=1.3)
+    _mark_horizon(ax_e, times, [(tot_pred, c_tot)], h)
+    e_handles = [Line2D([], [], color=c_tot, linestyle="-", label="predicted"),
+                 Line2D([], [], color="0.55", linestyle="--", label="true")]
+    window = _oscillation_window(times, kin_true if np.isfinite(kin_true).sum() >= 4 else kin_pred, h)
+    if window is not None:
+        ax_e.axvspan(*window, color="C1", alpha=0.12, linewidth=0)
+        e_handles.append(Patch(color="C1", alpha=0.25, label="window of the right panel"))
+    if has_h:
         e_handles.append(_horizon_legend_handle())
-    ax_e.set_xlabel("t [s]")
-    ax_e.set_ylabel("energy [J]")
-    ax_e.set_title("kinetic and potential energy")
-    ax_e.legend(handles=e_handles, fontsize="small", loc="upper center", bbox_to_anchor=(0.5, -0.17),
-                ncol=3, frameon=False)
-    ax_e.grid(alpha=0.3)
+    ax_e.set_xlabel("time t [s]")
+    ax_e.set_ylabel("total energy T + V [J]")
+    ax_e.set_title("total energy")
+    _legend_below(ax_e, e_handles, 2)
 
-    for ax in (ax_q, ax_e):
-        ax.set_xlim(times[0], times[-1] if times[-1] > times[0] else times[0] + 1.0)
-    return ax_q, ax_e
+    # right: kinetic / potential exchange (a window of it on long horizons)
+    _plot_gappy(ax_x, times, kin_true, color=c_kin, linestyle="--", linewidth=1.3)
+    _plot_gappy(ax_x, times, kin_pred, color=c_kin, linestyle="-", linewidth=1.5)
+    _plot_gappy(ax_x, times, pot_true, color=c_pot, linestyle="--", linewidth=1.3)
+    _plot_gappy(ax_x, times, pot_pred, color=c_pot, linestyle="-", linewidth=1.5)
+    _mark_horizon(ax_x, times, [(kin_pred, c_kin), (pot_pred, c_pot)], h)
+    x_handles = [
+        Line2D([], [], color=c_kin, linestyle="-", label="kinetic T predicted"),
+        Line2D([], [], color=c_kin, linestyle="--", label="kinetic T true"),
+        Line2D([], [], color=c_pot, linestyle="-", label="potential V predicted"),
+        Line2D([], [], color=c_pot, linestyle="--", label="potential V true"),
+    ]
+    if has_h and (window is None or window[0] <= h <= window[1]):
+        x_handles.append(_horizon_legend_handle())
+    ax_x.set_xlabel("time t [s]")
+    ax_x.set_ylabel("energy [J]")
+    if window is None:
+        ax_x.set_title("kinetic and potential energy")
+    else:
+        ax_x.set_title(f"kinetic and potential energy\n(window t = {_format_t(window[0])} … {_format_t(window[1])} s)")
+    _legend_below(ax_x, x_handles, 2)
+
+    for ax in (ax_q, ax_e, ax_x):
+        ax.set_xlim(times[0], t_hi)
+        ax.grid(alpha=0.3)
+    if window is not None:
+        margin = 0.02 * (window[1] - window[0])
+        ax_x.set_xlim(window[0] - margin, window[1] + margin)
+        inside = (times >= window[0]) & (times <= window[1])
+        vals = np.concatenate([a[inside] for a in (kin_pred, pot_pred, kin_true, pot_true)])
+        vals = vals[np.isfinite(vals)]
+        if vals.size:  # the y range of what the window shows, not of the whole series
+            lo, hi = float(vals.min()), float(vals.max())
+            pad = 0.05 * (hi - lo) if hi > lo else max(abs(hi), 1.0) * 0.05
+            ax_x.set_ylim(lo - pad, hi + pad)
+    return ax_q, ax_e, ax_x
 
 
 def _subscript(n: int) -> str:
     return str(n).translate(str.maketrans("0123456789", "₀₁₂₃₄₅₆₇₈₉"))
+
+
+def _nonfinite_note(ax, n_bad: int, size: int) -> None:
+    """The share of non-finite (grey) values, in a small box at the bottom of the panel."""
+    if n_bad:
+        ax.text(0.5, 0.03, f"non-finite\n{100.0 * n_bad / size:.0f}% (grey)",
+                transform=ax.transAxes, ha="center", va="bottom", fontsize="x-small",
+                bbox=dict(boxstyle="round", facecolor="white", alpha=0.8, linewidth=0))
+
+
+def _snapshot_colorbars(fig, axes: np.ndarray, im_f, im_e, field_label: str, f_extend: str, e_extend: str) -> None:
+    fig.colorbar(im_f, ax=axes[:2, :].ravel().tolist(), label=field_label, shrink=0.9, extend=f_extend)
+    fig.colorbar(im_e, ax=axes[2, :].ravel().tolist(), label=_ERROR_LABEL, shrink=1.0, extend=e_extend)
+
+
+def _label_snapshot_panels(axes: np.ndarray, times_shown: np.ndarray, h: float) -> None:
+    row_names = ("predicted", "true", "|pred − true|")
+    S = axes.shape[1]
+    for s in range(S):
+        for r in range(3):
+            ax = axes[r, s]
+            ax.tick_params(labelsize="small")
+            if s == 0:
+                ax.set_ylabel(f"{row_names[r]}\n{_X_LABELS[1]}")
+            if r == 2:
+                ax.set_xlabel(_X_LABELS[0])
+        t = float(times_shown[s])
+        where = "before horizon" if t < h else "after horizon"
+        axes[0, s].set_title(f"t = {_format_t(t)} s\n({where})", fontsize="medium")
 
 
 def _draw_fields(
@@ -315,14 +480,13 @@ def _draw_fields(
 
     S = pred.shape[0]
     err = np.abs(pred - true)  # NaN where pred is NaN
-    vmax = _finite_absmax(pred, true)
-    emax = _finite_absmax(err)
+    vmax, f_extend = _field_scale(pred, true)
+    emax, e_extend = _error_scale(err)
 
     cmap_f = mpl.colormaps[_FIELD_CMAP].with_extremes(bad=_MASK_COLOR)
     cmap_e = mpl.colormaps[_ERROR_CMAP].with_extremes(bad=_MASK_COLOR)
 
     axes = np.asarray(fig.subplots(3, S, sharex=True, sharey=True, squeeze=False))
-    row_names = ("predicted", "true", "|pred − true|")
     im_f = im_e = None
     for s in range(S):
         imgs = (pred[s], true[s], err[s])
@@ -337,22 +501,9 @@ def _draw_fields(
                 im = ax.imshow(img, origin="lower", extent=extent, cmap=cmap_e, vmin=0.0, vmax=emax,
                                interpolation="nearest", aspect="equal")
                 im_e = im
-            n_bad = int(np.count_nonzero(np.ma.getmaskarray(img)))
-            if n_bad:
-                ax.text(0.5, 0.5, f"non-finite\n{100.0 * n_bad / img.size:.0f}% (grey)",
-                        transform=ax.transAxes, ha="center", va="center", fontsize="x-small",
-                        bbox=dict(boxstyle="round", facecolor="white", alpha=0.8, linewidth=0))
-            ax.tick_params(labelsize="x-small")
-            if s == 0:
-                ax.set_ylabel(f"{row_names[r]}\ny", fontsize="small")
-            if r == 2:
-                ax.set_xlabel("x", fontsize="small")
-        t = float(times_shown[s])
-        where = "before horizon" if t < h else "after horizon"
-        axes[0, s].set_title(f"t = {_format_t(t)} s\n({where})", fontsize="small")
-
-    fig.colorbar(im_f, ax=axes[:2, :].ravel().tolist(), label=field_label, shrink=0.9)
-    fig.colorbar(im_e, ax=axes[2, :].ravel().tolist(), label="absolute error", shrink=0.9)
+            _nonfinite_note(ax, int(np.count_nonzero(np.ma.getmaskarray(img))), img.size)
+    _label_snapshot_panels(axes, times_shown, h)
+    _snapshot_colorbars(fig, axes, im_f, im_e, field_label, f_extend, e_extend)
     return axes
 
 
@@ -394,14 +545,13 @@ def _draw_fields_scattered(
     pred = np.where(np.isfinite(pred), pred, np.nan)
     true = np.where(np.isfinite(true), true, np.nan)
     err = np.abs(pred - true)  # NaN where pred or true is non-finite
-    vmax = _finite_absmax(pred, true)
-    emax = _finite_absmax(err)
+    vmax, f_extend = _field_scale(pred, true)
+    emax, e_extend = _error_scale(err)
 
     cmap_f = mpl.colormaps[_FIELD_CMAP].with_extremes(bad=_MASK_COLOR)
     cmap_e = mpl.colormaps[_ERROR_CMAP].with_extremes(bad=_MASK_COLOR)
 
     axes = np.asarray(fig.subplots(3, S, sharex=True, sharey=True, squeeze=False))
-    row_names = ("predicted", "true", "|pred − true|")
     im_f = im_e = None
     for s in range(S):
         vals = (pred[s], true[s], err[s])
@@ -417,25 +567,12 @@ def _draw_fields_scattered(
             else:
                 im = ax.tripcolor(tri, facecolors=face, cmap=cmap_e, vmin=0.0, vmax=emax, shading="flat")
                 im_e = im
-            n_bad = int(np.count_nonzero(~np.isfinite(v)))
-            if n_bad:
-                ax.text(0.5, 0.5, f"non-finite\n{100.0 * n_bad / v.size:.0f}% (grey)",
-                        transform=ax.transAxes, ha="center", va="center", fontsize="x-small",
-                        bbox=dict(boxstyle="round", facecolor="white", alpha=0.8, linewidth=0))
+            _nonfinite_note(ax, int(np.count_nonzero(~np.isfinite(v))), v.size)
             ax.set_xlim(box[0, 0], box[0, 1])
             ax.set_ylim(box[1, 0], box[1, 1])
             ax.set_aspect("equal")
-            ax.tick_params(labelsize="x-small")
-            if s == 0:
-                ax.set_ylabel(f"{row_names[r]}\ny", fontsize="small")
-            if r == 2:
-                ax.set_xlabel("x", fontsize="small")
-        t = float(times_shown[s])
-        where = "before horizon" if t < h else "after horizon"
-        axes[0, s].set_title(f"t = {_format_t(t)} s\n({where})", fontsize="small")
-
-    fig.colorbar(im_f, ax=axes[:2, :].ravel().tolist(), label=field_label, shrink=0.9)
-    fig.colorbar(im_e, ax=axes[2, :].ravel().tolist(), label="absolute error", shrink=0.9)
+    _label_snapshot_panels(axes, times_shown, h)
+    _snapshot_colorbars(fig, axes, im_f, im_e, field_label, f_extend, e_extend)
     return axes
 
 
@@ -487,16 +624,18 @@ def _draw_fields_1d(fig: Figure | SubFigure, x: np.ndarray, t: np.ndarray, pred:
     import matplotlib as mpl
 
     err = np.abs(pred - true)
-    vmax, emax = _finite_absmax(pred, true), _finite_absmax(err)
+    vmax, f_extend = _field_scale(pred, true)
+    emax, e_extend = _error_scale(err)
     top, bottom = fig.subfigures(2, 1, height_ratios=[1.3, 1.0])
     axes = np.asarray(top.subplots(1, 3, sharex=True, sharey=True, squeeze=False))[0]
     dx = float(x[1] - x[0]) if len(x) > 1 else 1.0
     extent = (float(x[0] - dx / 2), float(x[-1] + dx / 2), float(t[0]), float(t[-1]))
     if x_edges is not None:
         t_edges = _cell_edges(t, float(t[0]), float(t[-1]))
-    for ax, img, name, cmap, lo, hi in ((axes[0], pred, "predicted", _FIELD_CMAP, -vmax, vmax),
-                                        (axes[1], true, "true", _FIELD_CMAP, -vmax, vmax),
-                                        (axes[2], err, "|pred − true|", _ERROR_CMAP, 0.0, emax)):
+    for ax, img, name, cmap, lo, hi, label, extend in (
+            (axes[0], pred, "predicted", _FIELD_CMAP, -vmax, vmax, field_label, f_extend),
+            (axes[1], true, "true", _FIELD_CMAP, -vmax, vmax, field_label, "neither"),
+            (axes[2], err, "|pred − true|", _ERROR_CMAP, 0.0, emax, _ERROR_LABEL, e_extend)):
         cm = mpl.colormaps[cmap].with_extremes(bad=_MASK_COLOR)
         if x_edges is None:
             im = ax.imshow(np.ma.masked_invalid(img), origin="lower", extent=extent, aspect="auto", vmin=lo,
@@ -506,21 +645,22 @@ def _draw_fields_1d(fig: Figure | SubFigure, x: np.ndarray, t: np.ndarray, pred:
                                cmap=cm)
             ax.set_xlim(x_edges[0], x_edges[-1])
             ax.set_ylim(t_edges[0], t_edges[-1])
-        ax.axhline(h, color="k", ls="--", lw=0.8)
-        ax.set_title(name, fontsize="small")
-        ax.set_xlabel("x", fontsize="small")
-        ax.tick_params(labelsize="x-small")
-        top.colorbar(im, ax=ax, label=field_label if name != "|pred − true|" else "absolute error", shrink=0.9)
-    axes[0].set_ylabel("time t [s] (dashed: training horizon)", fontsize="small")
+        ax.axhline(h, color="k", ls="--", lw=0.9)
+        ax.set_title(name)
+        ax.set_xlabel(_X_LABELS[0])
+        ax.tick_params(labelsize="small")
+        top.colorbar(im, ax=ax, label=label, shrink=0.9, extend=extend)
+    axes[0].set_ylabel("time t [s]\n(dashed: training horizon)")
     ax = bottom.subplots()
     colors = mpl.colormaps["viridis"](np.linspace(0, 0.9, len(idx)))
     for c, i in zip(colors, idx):
         where = "before" if t[i] < h else "after"
-        ax.plot(x, pred[i], color=c, lw=1.5, label=f"t = {_format_t(float(t[i]))} s ({where} horizon)")
-        ax.plot(x, true[i], color=c, lw=1.5, ls=":")
-    ax.set_xlabel("x")
-    ax.set_ylabel(f"{field_label}\n(solid: predicted, dotted: true)", fontsize="small")
-    ax.legend(fontsize="x-small", ncols=2)
+        ax.plot(x, pred[i], color=c, lw=1.6, label=f"t = {_format_t(float(t[i]))} s ({where} horizon)")
+        ax.plot(x, true[i], color=c, lw=1.6, ls=":")
+    ax.set_xlabel(_X_LABELS[0])
+    ax.set_ylabel(f"{field_label}\n(solid: predicted, dotted: true)")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize="small", loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
     return axes
 
 
@@ -538,8 +678,8 @@ def _draw_scattered_body(fig: Figure | SubFigure, pts: np.ndarray, box: np.ndarr
     if dim == 3:
         sel, z_mid, half = _middle_slab(pts, box[2])
         pts, pf, tf = pts[sel], pf[:, sel], tf[:, sel]
-        field_label = f"{field_label} (slab z ≈ {z_mid:.3g} ± {half:.2g}, {sel.shape[0]} points)"
-        what = f"points of the slab z ≈ {z_mid:.3g} ± {half:.2g}"
+        field_label = f"{field_label} (slab {_X_LABELS[2]} ≈ {z_mid:.3g} ± {half:.2g}, {sel.shape[0]} points)"
+        what = f"points of the slab {_X_LABELS[2]} ≈ {z_mid:.3g} ± {half:.2g}"
     _draw_fields_scattered(fig, pts[:, :2], box[:2], t[idx], pf[idx], tf[idx], h, field_label, what)
 
 
@@ -559,8 +699,10 @@ def latent_and_energy_figure(
     train_horizon: float,
     title: str = "",
 ) -> Figure:
-    """Figure 3, top row: latent q̃(t) predicted (solid) vs projected (dashed), and kinetic/potential
-    energies predicted (solid) vs true (dashed), with the training horizon marked (● and a dotted line).
+    """Figure 3, top row: latent q̃(t) predicted (solid) vs projected (dashed); the total energy predicted
+    (solid) vs true (dashed) over the whole range; the kinetic and potential energies predicted (solid) vs true
+    (dashed), over the whole range, or where they oscillate more than 8 times in a window of 4 periods around
+    the training horizon (shaded on the total-energy panel). The training horizon is marked (● and a dotted line).
 
     times: (T,) seconds, strictly increasing. q_pred, q_proj: (T, d) (a (T,) array means d = 1).
     Energies: (T,) each, in joules.
@@ -575,7 +717,8 @@ def latent_and_energy_figure(
     pt = _check_series(potential_true, "potential_true", T)
     h = _check_scalar(train_horizon, "train_horizon")
 
-    fig = Figure(figsize=(11.0, 4.0), layout="constrained")
+    fig = Figure(figsize=(13.0, 4.4), layout="constrained")
+    _roomy(fig)
     _draw_latent_energy(fig, t, qp, qr, kp, pp, kt, pt, h)
     if title:
         fig.suptitle(title)
@@ -605,7 +748,8 @@ def field_snapshots_figure(
     q = _check_fields(true, "true", S, nf, "S")
     h = _check_scalar(train_horizon, "train_horizon")
 
-    fig = Figure(figsize=(2.3 * S + 1.8, 7.0), layout="constrained")
+    fig = Figure(figsize=(2.4 * S + 2.2, 7.5), layout="constrained")
+    _roomy(fig)
     _draw_fields(fig, gs, extent, ts, p, q, h)
     if title:
         fig.suptitle(title)
@@ -724,11 +868,21 @@ def figure3(
     idx = [i % T for i in idx]
     S = len(idx)
 
-    width = max(11.0, 2.3 * S + 1.8)
-    fig = Figure(figsize=(width, 11.5), layout="constrained")
-    top, bottom = fig.subfigures(2, 1, height_ratios=[1.0, 1.9])
+    width = max(13.0, 2.4 * S + 2.2)
+    snapshots = (pts is not None and pts.shape[1] >= 2) or (pts is None and len(gs) >= 2)  # 2-D panels
+    top_h = 4.4
+    if snapshots:  # three rows of panels of the box's aspect: as tall as they need, no taller
+        panel_w, panel_h = _panel_size(width, S, box)
+        bottom_h = 3.0 * (panel_h + 0.55) + 0.5
+    else:
+        bottom_h = 8.2
+    fig = Figure(figsize=(width, top_h + bottom_h), layout="constrained")
+    _roomy(fig)
+    top, bottom = fig.subfigures(2, 1, height_ratios=[top_h, bottom_h])
     _draw_latent_energy(top, t, qp, qr, e["kinetic_pred"], e["potential_pred"],
                         e["kinetic_true"], e["potential_true"], h)
+    if snapshots:
+        bottom = _centred(bottom, width, S, panel_w)
     if pts is not None:
         _draw_scattered_body(bottom, pts, box, t, pf, tf, idx, h, field_label)
     elif len(gs) == 1:
@@ -739,32 +893,84 @@ def figure3(
             k = gs[2] // 2
             z = box[2, 0] + (k + 0.5) * (box[2, 1] - box[2, 0]) / gs[2]
             pf, tf = (f.reshape(T, *gs)[..., k].reshape(T, -1) for f in (pf, tf))
-            field_label = f"{field_label} (slice z = {z:.3g})"
+            field_label = f"{field_label} (slice {_X_LABELS[2]} = {z:.3g})"
         _draw_fields(bottom, gs[:2], tuple(box[:2].reshape(-1)), t[idx], pf[idx], tf[idx], h, field_label)
     if title:
         fig.suptitle(title)
     return fig
 
 
-def save_figure(fig: Figure, path, **savefig_kwargs) -> Path:
-    """Write ``fig`` as a PNG (dpi 120) to ``path`` atomically; return the path.
+def vector_path(path) -> Path:
+    """Where :func:`save_figure` writes the PDF of a PNG at ``path``: the same stem with suffix ``.pdf``
+    (``fig3.png`` → ``fig3.pdf``); for a ``path`` that itself ends in ``.pdf`` (the PNG then has that name),
+    ``<stem>.vector.pdf``."""
+    path = Path(path)
+    pdf = path.with_suffix(".pdf")
+    return pdf if pdf != path else path.with_name(f"{path.stem}.vector.pdf")
 
-    Renders to a uniquely named temporary file in the same directory, then ``os.replace``s it onto
-    ``path``, so a reader never sees a half-written file. Parent directories are created. The format
-    is always PNG, whatever the suffix of ``path``. Other keyword arguments go to ``fig.savefig``.
+
+def _roomy(fig: Figure) -> None:
+    """More room between panels (and at the edges, where a tick label at the end of an axis reaches out) than
+    constrained layout's default."""
+    fig.get_layout_engine().set(w_pad=0.1, h_pad=0.06, wspace=0.03, hspace=0.02)
+
+
+_PANEL = 2.4  # inches: the side of a square snapshot panel of Figure 3
+_PANEL_EXTRA = 2.6  # inches beside the snapshot columns: row labels, colour bars
+
+
+def _panel_size(width: float, S: int, box: np.ndarray) -> tuple[float, float]:
+    """(width, height) in inches of one snapshot panel of a 2-D box (its aspect kept) when S columns share a figure
+    ``width`` inches wide: a square one ``_PANEL`` a side, a wide one as wide as fits (then less tall)."""
+    aspect = float(box[0, 1] - box[0, 0]) / float(box[1, 1] - box[1, 0])
+    w = min(_PANEL * max(aspect, 1.0), (width - _PANEL_EXTRA) / S)
+    if aspect < 1.0:  # a tall body: ``_PANEL`` tall at most
+        w = min(w, _PANEL * aspect)
+    return w, w / aspect
+
+
+def _centred(sub: SubFigure, width: float, S: int, panel_w: float) -> SubFigure:
+    """The middle part of ``sub`` (a figure ``width`` inches wide) just wide enough for S columns of panels
+    ``panel_w`` inches wide and their colour bars, so that a few snapshots do not spread over the whole width."""
+    need = S * panel_w + _PANEL_EXTRA
+    if need >= width - 0.5:
+        return sub
+    side = 0.5 * (width - need)
+    return sub.subfigures(1, 3, width_ratios=[side, need, side])[1]
+
+
+def save_figure(fig: Figure, path, *, pdf: bool = True, **savefig_kwargs) -> Path:
+    """Write ``fig`` as a PNG (200 dpi) to ``path`` and, with ``pdf`` (the default), as a vector PDF of the
+    same stem beside it (:func:`vector_path`: ``fig3.png`` → ``fig3.pdf``), both atomically; return the PNG's
+    path.
+
+    Each file is rendered to a uniquely named temporary file in the same directory, then ``os.replace``d
+    onto its name, so a reader never sees a half-written file (nor a temporary one after an error: they are
+    removed). Parent directories are created. The raster is always PNG, whatever the suffix of ``path``. The
+    PDF embeds its fonts as TrueType (editable text). Other keyword arguments (``dpi`` too) go to
+    ``fig.savefig`` for both files.
     """
+    import matplotlib as mpl
+
     if not isinstance(fig, Figure):
         raise ValueError(f"fig must be a matplotlib.figure.Figure, got {type(fig).__name__}")
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}.tmp.png")
+    stamp = f"{os.getpid()}.{uuid.uuid4().hex[:8]}"
+    targets = [(path, "png")] + ([(vector_path(path), "pdf")] if pdf else [])
+    temps = [(target.with_name(f".{target.name}.{stamp}.tmp.{fmt}"), target, fmt) for target, fmt in targets]
+    dpi = savefig_kwargs.pop("dpi", _DPI)  # of the PNG, and of the images embedded in the PDF
     try:
-        fig.savefig(tmp, format="png", dpi=_DPI, **savefig_kwargs)
-        os.replace(tmp, path)
+        for tmp, _, fmt in temps:
+            with mpl.rc_context({"pdf.fonttype": 42}):
+                fig.savefig(tmp, format=fmt, dpi=dpi, **savefig_kwargs)
+        for tmp, target, _ in temps:
+            os.replace(tmp, target)
     except BaseException:
-        try:
-            tmp.unlink()
-        except FileNotFoundError:
-            pass
+        for tmp, _, _ in temps:
+            try:
+                tmp.unlink()
+            except FileNotFoundError:
+                pass
         raise
     return path

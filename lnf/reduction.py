@@ -10,7 +10,7 @@ from typing import Optional
 import torch
 from torch import Tensor
 
-from lnf.siren import ModulatedSiren
+from lnf.siren import FieldJet, ModulatedSiren
 
 
 def reconstruction_loss(pred: Tensor, target: Tensor, density: Tensor) -> Tensor:
@@ -26,12 +26,16 @@ def reduce(
     step_size: Tensor,
     steps: int,
     codes: Optional[Tensor] = None,
+    first_jet: Optional[FieldJet] = None,
 ) -> Tensor:
     """q̃^K from q̃^0 = 0 (or `codes`) by q̃ ← q̃ − α ∇_q̃ ℓ^r(values, φ(q̃)).
 
     The gradient ∇_q̃ ℓ^r = (2/|X|) Σ_j ω0 J_jᵀ (φ_j − q_j) comes from the forward-mode jet, so the
     result is an ordinary differentiable function of the parameters: backpropagating through it is the
     exact second-order gradient of the unrolled steps (what `create_graph=True` would give).
+
+    `first_jet`: the order-1 jet of φ at q̃^0 and these points, if the caller has it (it does not depend on
+    `values`: two reductions from the same start, such as ρ̃(q) and ρ̃(φ(ρ̃(q))) in training, share it).
     """
     if steps < 1:
         raise ValueError(f"reduction steps K must be ≥ 1, got {steps}")
@@ -39,8 +43,8 @@ def reduce(
     if codes is None:
         codes = values.new_zeros(B, field.latent_dim)
     n = values.shape[-2]
-    for _ in range(steps):
-        jet = field.jet(codes, points, order=1)
+    for k in range(steps):
+        jet = first_jet if k == 0 and first_jet is not None else field.jet(codes, points, order=1)
         residual = density[..., None] * (jet.value - values)  # (B, N, A)
         grad = (2.0 / n) * torch.einsum("bna,bnad->bd", residual, jet.J)
         codes = codes - step_size * grad

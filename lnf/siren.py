@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Optional
+from typing import Any, Optional
 
 import torch
 from torch import Tensor, nn
@@ -45,6 +45,41 @@ class _Taylor:
 
     def __init__(self, v: Tensor, d1: Optional[Tensor], d2: Optional[Tensor]) -> None:
         self.v, self.d1, self.d2 = v, d1, d2
+
+
+class _SinCos(torch.autograd.Function):
+    """(sin x, cos x) with a backward that reuses both instead of recomputing them (torch's sin and cos each
+    evaluate the other function of their saved input again); forward-mode (jvp) and vmap rules included, so
+    torch.func transforms of a jet still work."""
+
+    generate_vmap_rule = True
+
+    @staticmethod
+    def forward(x: Tensor) -> tuple[Tensor, Tensor]:  # type: ignore[override]
+        return torch.sin(x), torch.cos(x)
+
+    @staticmethod
+    def setup_context(ctx: Any, inputs: tuple[Tensor], output: tuple[Tensor, Tensor]) -> None:
+        sin, cos = output
+        ctx.save_for_backward(sin, cos)
+        ctx.save_for_forward(sin, cos)
+
+    @staticmethod
+    def backward(ctx: Any, grad_sin: Optional[Tensor], grad_cos: Optional[Tensor]) -> Tensor:  # type: ignore[override]
+        sin, cos = ctx.saved_tensors
+        grad = grad_sin * cos if grad_sin is not None else torch.zeros_like(cos)
+        return grad if grad_cos is None else torch.addcmul(grad, grad_cos, sin, value=-1.0)
+
+    @staticmethod
+    def jvp(ctx: Any, tangent: Tensor) -> tuple[Tensor, Tensor]:  # type: ignore[override]
+        sin, cos = ctx.saved_tensors
+        return cos * tangent, -sin * tangent
+
+
+def _may_overwrite(t: Tensor) -> bool:
+    """Whether an intermediate of values-only decoding may be updated in place: no autograd records it and no
+    torch.func transform (vmap, jvp, grad) wraps it."""
+    return not (torch.is_grad_enabled() and t.requires_grad) and not torch._C._are_functorch_transforms_active()
 
 
 def _latent_pairs(d: int) -> list[tuple[int, int]]:
@@ -220,17 +255,24 @@ class ModulatedSiren(nn.Module):
                     d2 = torch.cat(parts, dim=1) if len(parts) > 1 else parts[0]
                 z = _Taylor(v, d1, d2)
             else:
-                z = self._linear(x, layer, weight=weight, bias=bias)
-                z.v = z.v + s[:, None, l]
+                if x.d1 is None and _may_overwrite(x.v):  # values only: bias and shift in one pass, in place
+                    z = _Taylor(torch.matmul(x.v, weight.T).add_(s[:, None, l] + bias), None, None)
+                else:
+                    z = self._linear(x, layer, weight=weight, bias=bias)
+                    z.v = z.v + s[:, None, l]
                 if n_lat:
                     shift_d1 = ds[:, :, l, None, :]
                     z.d1 = torch.cat([z.d1[:, :n_lat] + shift_d1, z.d1[:, n_lat:]], dim=1) if n_sp else z.d1 + shift_d1
                 if n_ll:
                     shift_d2 = dds[:, :, l, None, :]
                     z.d2 = torch.cat([z.d2[:, :n_ll] + shift_d2, z.d2[:, n_ll:]], dim=1) if n_pairs > n_ll else z.d2 + shift_d2
-            sin_z, cos_z = torch.sin(z.v), torch.cos(z.v)
+            if z.d1 is None:  # values only (decoding): no cosine; without autograd, sin in place (no new buffer)
+                inplace = _may_overwrite(z.v)
+                x = _Taylor(z.v.sin_() if inplace else torch.sin(z.v), None, None)
+                continue
+            sin_z, cos_z = _SinCos.apply(z.v)
             c = cos_z.unsqueeze(1)
-            d1 = None if z.d1 is None else c * z.d1
+            d1 = c * z.d1
             d2 = None
             if z.d2 is not None:  # (sin)'' = −sin: d2 = cos·z'' − sin·z'_i z'_j
                 prod = z.d1 * z.d1 if trivial_pairs else z.d1[:, left] * z.d1[:, right]

@@ -20,6 +20,7 @@ from lightning.pytorch.callbacks import EarlyStopping, ProgressBar, Timer
 from omegaconf import DictConfig, OmegaConf
 
 from lnf.baselines.latent_mlp import latent_trajectories
+from lnf.allocator import keep_freed_memory
 from lnf.config_keys import check_known_keys
 from lnf.model import dropped_settings
 from lnf.training.callbacks import RolloutEvaluationCallback, write_json_atomic
@@ -145,6 +146,7 @@ def train(cfg: DictConfig) -> dict[str, float]:
     output_dir = Path(cfg.paths.output_dir)
     output_dir.mkdir(parents=True, exist_ok=True)
     torch.set_num_threads(int(cfg.get("threads") or torch.get_num_threads()))
+    keep_freed_memory()  # reuse freed activation buffers (lnf/allocator.py)
     pl.seed_everything(int(cfg.seed), workers=True)
     start = time.perf_counter()
 

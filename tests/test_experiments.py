@@ -22,11 +22,38 @@ def test_bench_rollout_step_prints_a_ratio():
     assert len(rows) == 2 and all("×" in r for r in rows)
 
 
+def test_bench_training_measures_this_checkout_and_a_baseline_commit_in_the_same_run(tmp_path):
+    """The training benchmark measures HEAD in a temporary git worktree beside this checkout (each in its own
+    subprocess, importing its own lnf), counts the jets of a step from the code, and writes its table and raw
+    numbers atomically; the worktree is removed afterwards."""
+    import json
+
+    out = tmp_path / "bench"
+    _run(["experiments/bench_training.py", "--smoke", "--rounds", "1", "--threads", "1", "--baseline", "HEAD",
+          "--out", str(out)])
+    raw = json.loads((out / "bench_training.json").read_text())
+    assert set(raw["rows"]) == {"this checkout", "baseline"}
+    for row in raw["rows"].values():
+        assert row["jets_per_step"] >= 3 and row["step_seconds"] > 0 and row["decode_seconds"] > 0
+        assert row["step_flops"] > 0
+    summary = (out / "summary.md").read_text()
+    assert summary.startswith("Machine: ") and "Command: `python experiments/bench_training.py --smoke --baseline HEAD`" in summary
+    assert "against the baseline: training step time ×" in summary
+    assert not [p for p in out.iterdir() if p.name.startswith(".")]
+    worktrees = subprocess.run(["git", "-C", str(ROOT), "worktree", "list"], capture_output=True, text=True).stdout
+    assert "lnf-bench-" not in worktrees
+
+
 def test_probe_settings_reports_json():
-    out = _run(["experiments/probe_settings.py", "--seconds", "1", "--train", "2", "--test", "1", "--width", "16",
+    out = _run(["experiments/probe_settings.py", "--steps", "3", "--train", "2", "--test", "1", "--width", "16",
                 "--threads", "1"]).stdout
     report = json.loads(out)
-    assert report["steps"] >= 1 and 0 <= report["ring_share_of_sq_error"] <= 1
+    assert report["steps"] == 3
+    # 3 steps train nothing: a test rollout may diverge; it is counted, and the ring share is of the finite ones
+    assert report["diverged_test_trajectories"] in (0, 1)
+    if report["diverged_test_trajectories"] == 0:
+        assert 0 <= report["ring_share_of_sq_error"] <= 1
+    assert report["projection_rel_l2_uniform"] > 0  # the embedding scored on points over the whole body
     assert len(report["eps_along_codes"]) == 7
 
 
@@ -49,6 +76,13 @@ def _study(name, folder, *extra, tag=""):
                            *extra], cwd=ROOT, capture_output=True, text=True, timeout=600, env=env)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     return out, proc.stdout
+
+
+def _assert_figure(out, name):
+    """A study figure: the PNG and, beside it, its vector PDF; no temporary file left in the folder."""
+    png, pdf = out / f"{name}.png", out / f"{name}.pdf"
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and pdf.read_bytes()[:4] == b"%PDF", sorted(out.iterdir())
+    assert not [p.name for p in out.iterdir() if ".tmp" in p.name]
 
 
 def _csv(path):
@@ -74,6 +108,8 @@ def test_pareto_study_smoke(studies):
     assert all(float(r["table_nodes"]) >= 16 and float(r["table_fallback_fraction"]) >= 0 for r in tabulated)
     for name in ("pareto.png", "quadrature.png", "summary.md"):
         assert (out / name).stat().st_size > 0
+    _assert_figure(out, "pareto")
+    _assert_figure(out, "quadrature")
     summary = (out / "summary.md").read_text()
     assert "Black-box points dominated" in summary and "latent rollout cost" in summary
     # rerunning reuses every finished sweep instead of training again
@@ -91,6 +127,7 @@ def test_stability_study_smoke_then_cost_scaling_reuses_its_models(studies):
     # the black box has no Hamiltonian: it is only integrated with RK4
     assert {r["integrator_name"] for r in rows if r.get("method") == "latent_mlp" and r["study"] != "train"} == {"rk4"}
     assert (out / "stability.png").stat().st_size > 0 and "largest ok dt" in (out / "summary.md").read_text()
+    _assert_figure(out, "stability")
 
     out, stdout = _study("cost_scaling", studies)
     assert "reusing" in stdout
@@ -98,6 +135,7 @@ def test_stability_study_smoke_then_cost_scaling_reuses_its_models(studies):
     assert _methods(rows) == {"lnf", "latent_mlp", "pod", "full_order"}
     assert {r["sweep"] for r in rows} == {"points", "batch"}
     assert all(float(r["rollout_seconds"]) > 0 and float(r["decode_peak_mib"]) >= 0 for r in rows)
+    _assert_figure(out, "cost_scaling")
 
 
 def test_sparse_noisy_study_smoke(studies):
@@ -106,6 +144,7 @@ def test_sparse_noisy_study_smoke(studies):
     assert _methods(rows) == {"lnf", "latent_mlp", "pod", "full_order"}
     assert {r["data.observed_fraction"] for r in rows if r.get("knob") == "fraction"} == {"0.5", "0.25"}
     assert (out / "sparse_noisy.png").stat().st_size > 0
+    _assert_figure(out, "sparse_noisy")
 
 
 def test_model_size_study_smoke(studies):
@@ -115,6 +154,7 @@ def test_model_size_study_smoke(studies):
     assert {(r["model.latent_dim"], r["model.width"]) for r in ours} == {("1", "8"), ("1", "16"), ("2", "8"), ("2", "16")}
     assert _methods(rows) == {"lnf", "latent_mlp", "pod", "full_order"}
     assert "choice: d = 1" in stdout  # the smoke target (10) is met at d = 1 (a 1-epoch width-8 model may miss it)
+    _assert_figure(out, "model_size")
 
 
 def test_model_size_plot_draws_diverged_runs(tmp_path):
@@ -127,6 +167,7 @@ def test_model_size_plot_draws_diverged_runs(tmp_path):
     rows = [{"model.latent_dim": d, "model.width": w, ERR: float("inf")} for d in (1, 2) for w in (8, 16)]
     others = [{"method": "pod", "model.latent_dim": 1, ERR: 0.5}, {"method": "pod", "model.latent_dim": 2, ERR: float("inf")}]
     assert plot(study, rows, others, 0.1, None).stat().st_size > 0
+    _assert_figure(tmp_path, "model_size")
 
 
 def test_sparse_noisy_plot_legends_only_what_it_draws(tmp_path, monkeypatch):
@@ -147,6 +188,7 @@ def test_sparse_noisy_plot_legends_only_what_it_draws(tmp_path, monkeypatch):
     rows += [{"method": "lnf", "knob": "noise", "data.observed_fraction": 0.25, "data.noise": 0.1, ERR: 0.12},
              {"method": "full_order", "knob": "reference", ERR: float("inf"), "diverged_fraction": 1}]
     assert plot(study, rows).stat().st_size > 0
+    _assert_figure(tmp_path, "sparse_noisy")
     assert len(legends) == 2
     for labels in legends:
         assert studylib.LABELS["latent_mlp"] not in labels and studylib.LABELS["lnf"] in labels
@@ -159,6 +201,7 @@ def test_roofline_study_smoke(studies):
     assert len(rows) == 7 and all(float(r["ratio"]) > 0 for r in rows)
     assert _methods(rows) == {"lnf", "latent_mlp", "pod", "full_order"}
     assert (out / "roofline.png").stat().st_size > 0
+    _assert_figure(out, "roofline")
 
 
 def test_roofline_study_on_the_double_pendulum_and_the_elastic_scene(studies):

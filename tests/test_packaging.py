@@ -154,3 +154,25 @@ def test_lnf_exposes_its_version_consistently():
     assert lnf.__version__ == _pyproject()["project"]["version"] == version("lnf"), \
         "lnf.__version__, pyproject.toml and the installed metadata disagree: reinstall lnf (pip install -e .)"
 
+
+
+def test_a_checkout_on_pythonpath_alone_finds_its_configs(tmp_path):
+    """Without any install (the editable finder removed, only PYTHONPATH=<checkout>), `lnf.conf` is the checkout's
+    conf/ and Hydra composes the training config from it."""
+    code = (
+        "import sys\n"
+        "sys.meta_path = [f for f in sys.meta_path if 'editable' not in repr(f).lower()]\n"
+        "sys.path = [p for p in sys.path if 'site-packages' not in p or 'lnf' not in p]\n"
+        "import lnf, lnf.conf\n"
+        "from hydra import compose, initialize_config_module\n"
+        "with initialize_config_module('lnf.conf', version_base=None):\n"
+        "    cfg = compose('train')\n"
+        "print(lnf.conf.__file__, cfg.model.width)\n"
+    )
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    proc = subprocess.run([shutil.which("python") or "python", "-c", code], cwd=tmp_path, env=env, text=True,
+                          capture_output=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    path, width = proc.stdout.split()
+    assert path == str(CONF / "__init__.py")
+    assert int(width) == yaml.safe_load((CONF / "model" / "lnf.yaml").read_text())["width"]

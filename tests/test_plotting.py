@@ -1,4 +1,4 @@
-"""Tests for lnf.plotting (Figure 3 of the paper and the atomic PNG writer)."""
+"""Tests for lnf.plotting (Figure 3 of the paper and the atomic PNG + PDF writer)."""
 
 from __future__ import annotations
 
@@ -18,6 +18,7 @@ from lnf.plotting import (
 )
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+PDF_MAGIC = b"%PDF"
 H = 2.5  # training horizon [s]
 G = (16, 16)
 BOUNDS = ((-1.0, 1.0), (-1.0, 1.0))
@@ -58,6 +59,7 @@ def _assert_png(path, min_bytes=5_000):
     raw = path.read_bytes()
     assert raw[:8] == PNG_MAGIC
     assert len(raw) > min_bytes
+    assert plotting.vector_path(path).read_bytes()[:4] == PDF_MAGIC  # the vector copy beside it
     leftovers = [p.name for p in path.parent.iterdir() if "tmp" in p.name]
     assert leftovers == []
 
@@ -86,7 +88,8 @@ def test_latent_and_energy_figure_saves(tmp_path, data):
     )
     assert isinstance(fig, Figure)
     ax_q, ax_e = fig.axes[:2]
-    assert ax_q.get_xlabel() == "t [s]" and "[J]" in ax_e.get_ylabel()
+    assert ax_q.get_xlabel() == "time t [s]" and "[J]" in ax_e.get_ylabel()
+    assert ax_q.get_ylabel() == "latent coordinate q̃"
     assert ax_q.get_legend() is not None and ax_e.get_legend() is not None
     out = save_figure(fig, tmp_path / "sub" / "latent.png")  # parent dir created
     _assert_png(out)
@@ -145,7 +148,7 @@ def test_figure3_saves_and_overwrites(tmp_path, data):
     small = Figure(figsize=(2, 2))
     small.add_subplot().plot([0, 1], [1, 0])
     _assert_png(save_figure(small, path), min_bytes=1_000)
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["fig3.png"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["fig3.pdf", "fig3.png"]  # the vector copy beside it
 
 
 def test_nan_predictions_still_plot(tmp_path, data):
@@ -257,6 +260,9 @@ def test_save_figure_png_whatever_suffix(tmp_path):
     out = save_figure(fig, str(tmp_path / "plot.pdf"))
     assert out == tmp_path / "plot.pdf"
     assert out.read_bytes()[:8] == PNG_MAGIC
+    # the PDF cannot take the PNG's name: it gets its own
+    assert plotting.vector_path(out) == tmp_path / "plot.vector.pdf"
+    assert (tmp_path / "plot.vector.pdf").read_bytes()[:4] == PDF_MAGIC
     with pytest.raises(ValueError, match="fig"):
         save_figure("not a figure", tmp_path / "y.png")
 
@@ -289,11 +295,12 @@ def test_figure3_draws_bodies_of_one_and_three_dimensions(data, grid_shape, boun
     path = save_figure(fig, tmp_path / "f.png")
     assert path.read_bytes()[:8] == PNG_MAGIC
     labels = [ax.get_xlabel() for ax in fig.axes]
-    assert "x" in labels
+    assert "X₁" in labels and "time t [s]" in labels  # body coordinates and time, in words
     if len(grid_shape) == 1:
         assert any("training horizon" in ax.get_ylabel() for ax in fig.axes)
     else:
-        assert any("slice z" in (ax.get_ylabel() or "") for ax in fig.axes)
+        assert any("slice X₃" in (ax.get_ylabel() or "") for ax in fig.axes)
+        assert any(ax.get_ylabel().endswith("X₂") for ax in fig.axes)
     wrong = [[0.0, 1.0]] * (len(grid_shape) % 3 + 1)  # bounds of another dimension than the grid's
     with pytest.raises(ValueError, match="bounds"):
         figure3(data["t"], data["q_pred"], data["q_proj"], data["energies"], grid_shape, wrong, true, true, None, H)
@@ -323,11 +330,11 @@ def test_figure3_scattered_1d_points_unsorted_non_uniform(data, tmp_path):
     fig = _figure3_on_points(data, x[:, None], [[0.0, 1.0]], pred, true, [12, 62], title="1-D points")
     path = save_figure(fig, tmp_path / "scattered_1d.png")
     _assert_png(path, min_bytes=20_000)
-    # latent + energy, 3 space–time panels + their 3 colour bars, 1 line-plot panel
-    assert len(fig.axes) == 9
-    assert _colorbar_labels(fig) == ["field q", "field q", "absolute error"]
-    mesh = fig.axes[2].collections[0]  # the "predicted" space–time panel
-    assert fig.axes[2].get_title() == "predicted"
+    # latent, total energy, energy exchange; 3 space–time panels + their 3 colour bars, 1 line-plot panel
+    assert len(fig.axes) == 10
+    assert _colorbar_labels(fig) == ["field q", "field q", plotting._ERROR_LABEL]
+    mesh = fig.axes[3].collections[0]  # the "predicted" space–time panel
+    assert fig.axes[3].get_title() == "predicted"
     coords = mesh.get_coordinates()  # (T + 1, N + 1, 2) cell corners
     edges = np.concatenate([[0.0], 0.5 * (xs[1:] + xs[:-1]), [1.0]])  # x = 0 is a point: its cell starts there
     np.testing.assert_allclose(coords[0, :, 0], edges)
@@ -352,9 +359,9 @@ def test_figure3_scattered_2d_random_points_with_nan_block(data, tmp_path):
     fig = _figure3_on_points(data, pts, [[-1.0, 1.0], [0.0, 2.0]], pred, true, [12, 87],
                              field_label="field q₃")
     _assert_png(save_figure(fig, tmp_path / "scattered_2d.png"), min_bytes=20_000)
-    assert len(fig.axes) == 2 + 3 * 2 + 2  # latent + energy, 3 rows × 2 snapshots, 2 colour bars
-    assert _colorbar_labels(fig) == ["field q₃", "absolute error"]
-    panels = [ax for ax in fig.axes[2:] if ax.get_label() != "<colorbar>"]
+    assert len(fig.axes) == 3 + 3 * 2 + 2  # latent + 2 energy panels, 3 rows × 2 snapshots, 2 colour bars
+    assert _colorbar_labels(fig) == ["field q₃", plotting._ERROR_LABEL]
+    panels = [ax for ax in fig.axes[3:] if ax.get_label() != "<colorbar>"]
     for ax in panels:
         assert ax.get_xlim() == (-1.0, 1.0) and ax.get_ylim() == (0.0, 2.0)
         assert ax.get_aspect() == 1.0
@@ -380,13 +387,13 @@ def test_figure3_scattered_3d_random_points_middle_slab(data, tmp_path):
     true = data["q_proj"] * (pts[:, 0] * pts[:, 1] + pts[:, 2])[None, :]
     fig = _figure3_on_points(data, pts, [[0, 2], [0, 1], [-0.5, 0.5]], true + 0.1, true, [12, 87])
     _assert_png(save_figure(fig, tmp_path / "scattered_3d.png"), min_bytes=20_000)
-    assert len(fig.axes) == 2 + 3 * 2 + 2
+    assert len(fig.axes) == 3 + 3 * 2 + 2
     n_slab = int(np.count_nonzero(np.abs(pts[:, 2]) <= 1.0 / 16))
     labels = _colorbar_labels(fig)
-    assert labels[0] == f"field q (slab z ≈ 0 ± 0.062, {n_slab} points)" and labels[1] == "absolute error"
-    tri = fig.axes[2].collections[0]
+    assert labels[0] == f"field q (slab X₃ ≈ 0 ± 0.062, {n_slab} points)" and labels[1] == plotting._ERROR_LABEL
+    tri = fig.axes[3].collections[0]
     assert len(tri.get_paths()) == np.asarray(tri.get_array()).size > n_slab  # ~2·n_slab triangles
-    assert fig.axes[2].get_xlim() == (0.0, 2.0) and fig.axes[2].get_ylim() == (0.0, 1.0)
+    assert fig.axes[3].get_xlim() == (0.0, 2.0) and fig.axes[3].get_ylim() == (0.0, 1.0)
     with pytest.raises(ValueError, match="at least 3 points"):
         _figure3_on_points(data, pts[:2], [[0, 2], [0, 1], [-0.5, 0.5]], true[:, :2], true[:, :2], [12])
 
@@ -409,4 +416,169 @@ def test_figure3_needs_grid_shape_or_points(data):
         figure3(*args, points=collinear)
     # grid_shape wins over points (existing callers unchanged): the 16×16 grid's images, points ignored
     fig = figure3(*args[:4], G, *args[5:], points=pts)
-    assert fig.axes[2].images[0].get_array().shape == (16, 16)
+    assert fig.axes[3].images[0].get_array().shape == (16, 16)
+
+
+# --------------------------------------------------------------------------------------
+# vector output, colour scales, energy panels, titles
+# --------------------------------------------------------------------------------------
+
+
+def _small_figure():
+    fig = Figure(figsize=(3, 2))
+    fig.add_subplot().plot([0, 1], [0, 1], label="q̃ predicted")
+    return fig
+
+
+def test_save_figure_writes_a_pdf_beside_the_png_atomically(tmp_path, monkeypatch):
+    """A PNG (200 dpi) and a PDF of the same stem, each through a temporary name in the same folder and
+    os.replace; the PNG's path is returned; pdf=False writes the PNG alone."""
+    renamed = []
+    replace = plotting.os.replace
+    monkeypatch.setattr(plotting.os, "replace", lambda a, b: renamed.append((Path(a), Path(b))) or replace(a, b))
+    out = save_figure(_small_figure(), tmp_path / "figs" / "f.png")
+    assert out == tmp_path / "figs" / "f.png" and out.read_bytes()[:8] == PNG_MAGIC
+    pdf = tmp_path / "figs" / "f.pdf"
+    assert pdf.read_bytes()[:4] == PDF_MAGIC and b"%%EOF" in pdf.read_bytes()[-64:]
+    assert [b for _, b in renamed] == [out, pdf]
+    assert all(a.parent == b.parent and a.name.startswith(f".{b.name}.") and "tmp" in a.name for a, b in renamed)
+    assert sorted(p.name for p in out.parent.iterdir()) == ["f.pdf", "f.png"]  # no temporary left
+    from PIL import Image
+
+    with Image.open(out) as im:
+        assert im.size == (600, 400)  # 3 × 2 inches at 200 dpi
+    save_figure(_small_figure(), tmp_path / "only.png", pdf=False)
+    assert not (tmp_path / "only.pdf").exists()
+
+
+def test_save_figure_leaves_no_temporary_when_the_pdf_fails(tmp_path, monkeypatch):
+    replace = plotting.os.replace
+
+    def fail_on_pdf(a, b):
+        if str(b).endswith(".pdf"):
+            raise OSError("disk full")
+        replace(a, b)
+
+    monkeypatch.setattr(plotting.os, "replace", fail_on_pdf)
+    with pytest.raises(OSError, match="disk full"):
+        save_figure(_small_figure(), tmp_path / "x.png")
+    assert [p.name for p in tmp_path.iterdir() if "tmp" in p.name] == []
+
+
+def _colorbar_of(fig, label):
+    """The colour bar labelled `label` and the colour limits of what it shows."""
+    cax = next(ax for ax in fig.axes if ax.get_label() == "<colorbar>" and ax.get_ylabel() == label)
+    return cax._colorbar, cax._colorbar.mappable.get_clim()
+
+
+def test_error_colour_scale_is_not_set_by_one_outlier(data):
+    """One huge corner error: the error scale ends at a high percentile (below the outlier), the colour bar
+    extends, and the light end of a sequential map is zero error."""
+    pred = data["pred_fields"].copy()
+    pred[:, 0] += 50.0  # one corner, every frame
+    fig = figure3(data["t"], data["q_pred"], data["q_proj"], data["energies"], G, BOUNDS, pred,
+                  data["true_fields"], [12, 87], H)
+    err_panel = next(ax for ax in fig.axes if ax.get_ylabel().startswith("|pred − true|"))
+    cbar, (lo, hi) = _colorbar_of(fig, plotting._ERROR_LABEL)
+    assert err_panel.images[0].get_clim() == (lo, hi)  # every panel of the row on the colour bar's scale
+    err = np.abs(pred - data["true_fields"])[[12, 87]]
+    assert lo == 0.0 and hi < 0.1 * err.max() and hi >= np.percentile(err, 90)
+    assert cbar.extend == "max" and cbar.ax.get_ylabel() == plotting._ERROR_LABEL
+    cmap = err_panel.images[0].get_cmap()
+    assert np.mean(cmap(0.0)[:3]) > 0.8 > np.mean(cmap(1.0)[:3])  # small errors light, large ones dark
+    # the field scale: the true field's range; the saturated prediction gets an arrow, the truth none
+    cbar_f, (flo, fhi) = _colorbar_of(fig, "field q")
+    assert fhi == pytest.approx(np.abs(data["true_fields"][[12, 87]]).max(), rel=0.5) and fhi < 50
+    assert cbar_f.extend in ("max", "both") and flo == -fhi
+    # errors with no outlier: the whole range, no arrow
+    fig = figure3(data["t"], data["q_pred"], data["q_proj"], data["energies"], G, BOUNDS, data["pred_fields"],
+                  data["true_fields"], [12, 87], H)
+    cbar, (_, hi) = _colorbar_of(fig, plotting._ERROR_LABEL)
+    err = np.abs(data["pred_fields"] - data["true_fields"])[[12, 87]]
+    assert hi <= err.max() and (cbar.extend == "neither" or hi >= np.percentile(err, 99) * 0.999)
+
+
+@pytest.mark.parametrize("kind", ["1-D grid", "scattered 2-D"])
+def test_error_colour_scale_is_robust_on_every_body(data, kind):
+    rng = np.random.default_rng(1)
+    if kind == "1-D grid":
+        true = data["q_proj"] * np.sin(np.linspace(0, 3, 40))[None, :]
+        pred = true + 0.01
+        pred[50, 3] = 1e3  # one sample
+        fig = figure3(data["t"], data["q_pred"], data["q_proj"], data["energies"], (40,), [[0, 1]], pred, true,
+                      None, H)
+    else:
+        pts = rng.uniform(-1, 1, (150, 2))
+        true = data["q_proj"] * pts[None, :, 0]
+        pred = true + 0.01 * rng.standard_normal(true.shape)
+        pred[:, 7] = 1e3
+        fig = figure3(data["t"], data["q_pred"], data["q_proj"], data["energies"], None, BOUNDS, pred, true,
+                      [12, 87], H, points=pts)
+    cbar, (_, hi) = _colorbar_of(fig, plotting._ERROR_LABEL)
+    assert hi < 1.0 and cbar.extend == "max"
+
+
+def _energy_axes(fig):
+    return fig.axes[1], fig.axes[2]  # total energy, kinetic / potential
+
+
+def test_energy_panels_stay_readable_on_long_horizons():
+    """5 s: kinetic/potential over the whole range; 20 s (many oscillations): total energy over the whole
+    range, kinetic/potential in a window of a few periods around the training horizon, shaded on the other."""
+    for t_end, windowed in ((5.0, False), (20.0, True)):
+        t = 0.05 * np.arange(int(t_end / 0.05))
+        w = np.sqrt(9.81)
+        theta = 0.8 * np.cos(w * t)
+        e = dict(kinetic_true=0.5 * (0.8 * w * np.sin(w * t)) ** 2, potential_true=0.5 * 9.81 * theta**2)
+        e["kinetic_pred"], e["potential_pred"] = 1.01 * e["kinetic_true"], e["potential_true"]
+        e["kinetic_pred"][-10:] = np.nan  # diverged at the end: a gap, not a failure
+        fig = latent_and_energy_figure(t, theta, theta, e["kinetic_pred"], e["potential_pred"], e["kinetic_true"],
+                                       e["potential_true"], H)
+        ax_e, ax_x = _energy_axes(fig)
+        total = ax_e.lines[0].get_ydata()
+        np.testing.assert_allclose(total, e["kinetic_true"] + e["potential_true"])
+        assert "total energy" in ax_e.get_ylabel() and "[J]" in ax_e.get_ylabel() and ax_x.get_xlabel() == "time t [s]"
+        lo, hi = ax_x.get_xlim()
+        if windowed:
+            assert "window" in ax_x.get_title() and hi - lo < 0.5 * t_end and lo <= H <= hi
+            assert ax_e.patches and ax_e.get_xlim()[1] >= t[-1] - 1e-9  # the window shaded, the total whole
+        else:
+            assert "window" not in ax_x.get_title() and lo == t[0] and hi == pytest.approx(t[-1])
+        assert all(ax.get_legend() is not None for ax in fig.axes[:3])
+
+
+def test_figure3_title_is_what_is_passed(data):
+    title = "test trajectory 0 · RK4 · dt = 0.05 s"
+    fig = figure3(data["t"], data["q_pred"], data["q_proj"], data["energies"], G, BOUNDS, data["pred_fields"],
+                  data["true_fields"], [12], H, title=title)
+    assert fig._suptitle.get_text() == title
+
+
+def test_evaluation_figures_name_the_integrator_and_time_step(data, tmp_path, monkeypatch):
+    """save_evaluation_figures titles each Figure 3 with the trajectory, the integrator (when given) and dt (the
+    times' spacing unless given), and writes the PNG and PDF."""
+    from types import SimpleNamespace
+
+    from lnf.evaluation import RolloutEvaluation
+    from lnf.training.callbacks import save_evaluation_figures
+
+    n = 2
+    result = RolloutEvaluation(
+        metrics={}, times=data["t"], q_pred=np.stack([data["q_pred"]] * n), q_ref=np.stack([data["q_proj"]] * n),
+        pred_fields=np.stack([data["pred_fields"]] * n)[..., None],
+        true_fields=np.stack([data["true_fields"]] * n)[..., None],
+        energies={k: np.stack([v] * n) for k, v in data["energies"].items()})
+    scene = SimpleNamespace(field_dim=1, bounds=[list(b) for b in BOUNDS])
+    titles = []
+    monkeypatch.setattr(plotting, "save_figure", lambda fig, path: titles.append(fig._suptitle.get_text()) or path)
+    for integrator, dt, words in [("rk4", None, "RK4 · dt = 0.05 s"),
+                                  ({"name": "implicit_midpoint", "order": 4, "substeps": 2}, 0.1,
+                                   "implicit midpoint (order 4) · dt = 0.1 s in 2 substeps"),
+                                  (None, None, "dt = 0.05 s")]:
+        titles.clear()
+        paths = save_evaluation_figures(result, scene, G, H, tmp_path, "test", 2, integrator=integrator, dt=dt)
+        assert paths == [tmp_path / "test_trajectory0.png", tmp_path / "test_trajectory1.png"]
+        assert titles == [f"test trajectory {i} · {words}" for i in range(2)]
+    monkeypatch.undo()
+    out = save_evaluation_figures(result, scene, G, H, tmp_path / "real", "test", 1, integrator="rk4")
+    assert out[0].read_bytes()[:8] == PNG_MAGIC and out[0].with_suffix(".pdf").read_bytes()[:4] == PDF_MAGIC

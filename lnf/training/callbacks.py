@@ -33,20 +33,48 @@ def write_json_atomic(path: str | Path, payload: dict[str, Any]) -> Path:
 
 
 def save_evaluation_figures(result: RolloutEvaluation, scene: Any, grid_shape: Optional[tuple[int, ...]],
-                            train_horizon: float, out_dir: Path, prefix: str, n_trajectories: int = 2) -> list[Path]:
+                            train_horizon: float, out_dir: Path, prefix: str, n_trajectories: int = 2,
+                            integrator: "Integrator | dict | str | None" = None,
+                            dt: Optional[float] = None) -> list[Path]:
     """Figure 3 (latent, energies, fields and errors before/after the horizon) for the first trajectories; fields
-    on a midpoint grid of `grid_shape`, or on the scattered ``result.points`` when it is None."""
+    on a midpoint grid of `grid_shape`, or on the scattered ``result.points`` when it is None.
+
+    Each figure is written as ``<prefix>_trajectory<i>.png`` and, beside it, ``<prefix>_trajectory<i>.pdf``
+    (:func:`lnf.plotting.save_figure`); the PNG paths are returned. The title names the trajectory, the
+    integrator of the rollout (`integrator`: an object, name or {'name': ...} spec as :func:`get_integrator`
+    takes it; left out of the title when None) and its time step (`dt` [s]; default the spacing of
+    ``result.times``, the step :func:`evaluate_rollouts` integrates with)."""
     from lnf.plotting import _subscript, default_snapshot_indices, figure3, save_figure
 
+    names = {"implicit_midpoint": "implicit midpoint", "rk4": "RK4", "dopri5": "Dormand–Prince 5(4)"}
+    run, integ = [], None
+    if integrator is not None:
+        try:
+            integ = get_integrator(integrator)
+        except (TypeError, ValueError, KeyError):  # a spec it cannot build: named as given
+            run.append(str(integrator))
+        else:
+            order = f" (order {integ.order})" if integ.name == "implicit_midpoint" else ""
+            run.append(names.get(integ.name, integ.name) + order)
+    times = np.asarray(result.times, dtype=float)
+    if dt is None and len(times) > 1:
+        dt = float(times[1] - times[0])
+    if dt is not None:
+        substeps = int(getattr(integ, "substeps", 1))
+        if integ is not None and integ.name == "dopri5":
+            run.append(f"adaptive steps, output every {dt:g} s")
+        else:
+            run.append(f"dt = {dt:g} s" + (f" in {substeps} substeps" if substeps > 1 else ""))
     paths = []
     idx = default_snapshot_indices(result.times, train_horizon)
     comp = scene.field_dim - 1  # vector fields: the last component (the vertical displacement of the elastic body)
     label = "field q" if scene.field_dim == 1 else f"field component q{_subscript(comp + 1)}"
     for i in range(min(n_trajectories, result.q_pred.shape[0])):
         energies = {k: v[i] for k, v in result.energies.items()}
+        title = " · ".join([f"{prefix} trajectory {i}", *run])
         fig = figure3(result.times, result.q_pred[i], result.q_ref[i], energies, grid_shape, scene.bounds,
                       result.pred_fields[i, ..., comp], result.true_fields[i, ..., comp], idx, train_horizon,
-                      title=f"{prefix} trajectory {i}", field_label=label, points=result.points)
+                      title=title, field_label=label, points=result.points)
         paths.append(save_figure(fig, out_dir / f"{prefix}_trajectory{i}.png"))
     return paths
 
@@ -200,7 +228,7 @@ class RolloutEvaluationCallback(pl.Callback):
         self._figure_inputs = None
         try:
             paths = save_evaluation_figures(result, scene, grid_shape, horizon, self.output_dir / "figures",
-                                            "test", self.figures)
+                                            "test", self.figures, integrator=self.integrator)
             self._log_images(trainer, paths)
         except Exception as err:  # noqa: BLE001 - any drawing failure is reported, the results are kept
             log.warning("could not draw Figure 3 (%s: %s); metrics.json and the checkpoints are written",
