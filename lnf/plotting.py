@@ -939,10 +939,11 @@ def _centred(sub: SubFigure, width: float, S: int, panel_w: float) -> SubFigure:
     return sub.subfigures(1, 3, width_ratios=[side, need, side])[1]
 
 
-def save_figure(fig: Figure, path, *, pdf: bool = True, **savefig_kwargs) -> Path:
-    """Write ``fig`` as a PNG (200 dpi) to ``path`` and, with ``pdf`` (the default), as a vector PDF of the
-    same stem beside it (:func:`vector_path`: ``fig3.png`` → ``fig3.pdf``), both atomically; return the PNG's
-    path.
+def save_figure(fig: Figure, path, *, pdf: bool | None = None, **savefig_kwargs) -> Path:
+    """Write ``fig`` as a PNG (200 dpi) to ``path`` and, with ``pdf``, as a vector PDF of the same stem beside
+    it (:func:`vector_path`: ``fig3.png`` → ``fig3.pdf``), both atomically; return the PNG's path. ``pdf=None``
+    (the default) writes the PDF unless the environment sets ``LNF_FIGURE_PDF=0`` (PNG only: quicker, for
+    runs that draw many figures nobody will print).
 
     Each file is rendered to a uniquely named temporary file in the same directory, then ``os.replace``d
     onto its name, so a reader never sees a half-written file (nor a temporary one after an error: they are
@@ -957,6 +958,8 @@ def save_figure(fig: Figure, path, *, pdf: bool = True, **savefig_kwargs) -> Pat
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     stamp = f"{os.getpid()}.{uuid.uuid4().hex[:8]}"
+    if pdf is None:
+        pdf = os.environ.get("LNF_FIGURE_PDF", "1").strip().lower() not in ("0", "false", "no", "off")
     targets = [(path, "png")] + ([(vector_path(path), "pdf")] if pdf else [])
     temps = [(target.with_name(f".{target.name}.{stamp}.tmp.{fmt}"), target, fmt) for target, fmt in targets]
     dpi = savefig_kwargs.pop("dpi", _DPI)  # of the PNG, and of the images embedded in the PDF

@@ -11,8 +11,12 @@ ROOT = Path(__file__).resolve().parents[1]
 pytestmark = pytest.mark.slow
 
 
-def _run(args):
-    return subprocess.run([sys.executable, *args], cwd=ROOT, capture_output=True, text=True, timeout=300, check=True)
+def _run(args, png_only=False):
+    """`python args...` from the repository root; `png_only`: figures without their PDF (LNF_FIGURE_PDF=0), for
+    tests that do not look at them."""
+    env = {**os.environ, "LNF_FIGURE_PDF": "0"} if png_only else None
+    return subprocess.run([sys.executable, *args], cwd=ROOT, capture_output=True, text=True, timeout=300, check=True,
+                          env=env)
 
 
 def test_bench_rollout_step_prints_a_ratio():
@@ -419,11 +423,12 @@ def test_scenes_script_measures_a_tiny_checkpoint(scene, tmp_path):
             "data.fine_resolution=12", "data.coarse_resolution=8", "model.width=16", "model.hyper_width=8",
             "quadrature.order=4", "evaluation.long_steps=10", "evaluation.long_trajectories=1",
             "evaluation.max_reduction_points=64", f"paths.data_dir={tmp_path / 'data'}"]
-    _run(["-m", "lnf.train", f"+experiment={scene}", "trainer=smoke", "logger=csv", *data, f"hydra.run.dir={run}"])
+    _run(["-m", "lnf.train", f"+experiment={scene}", "trainer=smoke", "logger=csv", *data, f"hydra.run.dir={run}"],
+         png_only=True)
     measure = "black_box" if scene == "double_pendulum" else "modes"  # both apply to both; one each keeps it short
     _run(["experiments/scenes.py", "--scene", scene, "--ckpt", str(run / "checkpoints" / "last.ckpt"),
           "--out", str(tmp_path / "out"), "--max-modes", "2", "--bb-iterations", "10", "--threads", "1",
-          "--measure", measure])
+          "--measure", measure], png_only=True)
     result = json.loads((tmp_path / "out" / "results.json").read_text())
     assert result["measurements"] == [measure]
     if scene == "double_pendulum":
@@ -470,11 +475,11 @@ def test_scenes_script_measures_a_tiny_elastic_checkpoint(scene, tmp_path):
           "data.n_train=2", "data.n_val=1", "data.n_test=2", "data.n_times=12", "data.train_times=6",
           "data.fine_resolution=8", "data.coarse_resolution=8", "model.width=16", "model.hyper_width=8",
           "quadrature.order=[4,3]", "evaluation.long_steps=4", "evaluation.long_trajectories=1",
-          f"paths.data_dir={tmp_path / 'data'}", f"hydra.run.dir={run}"])
+          f"paths.data_dir={tmp_path / 'data'}", f"hydra.run.dir={run}"], png_only=True)
     out = tmp_path / "out"
     measure = ["speedup"] if scene == "elastic" else ["loads", "decay"]  # the black box and POD modes: the test above
     _run(["experiments/scenes.py", "--scene", scene, "--ckpt", str(run / "checkpoints" / "last.ckpt"),
-          "--out", str(out), "--threads", "1", "--measure", *measure])
+          "--out", str(out), "--threads", "1", "--measure", *measure], png_only=True)
     result = json.loads((out / "results.json").read_text())
     assert result["measurements"] == measure
     if scene == "elastic":

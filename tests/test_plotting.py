@@ -582,3 +582,14 @@ def test_evaluation_figures_name_the_integrator_and_time_step(data, tmp_path, mo
     monkeypatch.undo()
     out = save_evaluation_figures(result, scene, G, H, tmp_path / "real", "test", 1, integrator="rk4")
     assert out[0].read_bytes()[:8] == PNG_MAGIC and out[0].with_suffix(".pdf").read_bytes()[:4] == PDF_MAGIC
+
+
+def test_the_environment_can_turn_the_pdf_off(tmp_path, monkeypatch):
+    """LNF_FIGURE_PDF=0 writes the PNG alone; an explicit pdf=True still writes both."""
+    fig = Figure()
+    fig.add_subplot().plot([0, 1], [0, 1])
+    monkeypatch.setenv("LNF_FIGURE_PDF", "0")
+    save_figure(fig, tmp_path / "a.png")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.png"]
+    save_figure(fig, tmp_path / "b.png", pdf=True)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.png", "b.pdf", "b.png"]
