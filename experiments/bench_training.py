@@ -235,12 +235,10 @@ def main(argv: list[str] | None = None) -> None:
     text = where + table(rows, peak)
     print(text)
     out = args.out or ROOT / "outputs" / "studies" / ("bench_training-smoke" if args.smoke else "bench_training")
-    out.mkdir(parents=True, exist_ok=True)
-    for name, payload in [("bench_training.json", json.dumps({"peak_flops": peak, "rows": rows}, indent=2)),
-                          ("summary.md", text)]:
-        tmp_path = out / f".{name}.tmp-{os.getpid()}"
-        tmp_path.write_text(payload)
-        os.replace(tmp_path, out / name)
+    from lnf.tempfiles import write_text_atomic
+
+    write_text_atomic(out / "bench_training.json", json.dumps({"peak_flops": peak, "rows": rows}, indent=2))
+    write_text_atomic(out / "summary.md", text)
     print(f"[bench] wrote {out / 'summary.md'}; collect it with "
           f"`python experiments/results_tables.py --collect bench_training={out}`")
 

@@ -336,6 +336,8 @@ def rebuild(text: str, where: str, used: Optional[dict[str, list[str]]] = None) 
 
 
 def write_atomic(path: Path, text: str) -> None:
+    """lnf.tempfiles.write_text_atomic's twin: this script renders and checks with the standard library alone, and
+    importing anything from lnf loads torch."""
     tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
     try:
         tmp.write_text(text)

@@ -880,12 +880,7 @@ def markdown_table(rows: list[dict[str, Any]], columns: list[tuple[str, str]]) -
 
 
 def write_text_atomic(path: Path, text: str) -> Path:
-    """Text written to a temporary name in the same folder, then renamed."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + f".tmp-{os.getpid()}")
-    try:
-        tmp.write_text(text)
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
-    return path
+    """Text written to a temporary name in the same folder, then renamed (:func:`lnf.tempfiles.write_text_atomic`)."""
+    from lnf.tempfiles import write_text_atomic as write
+
+    return write(path, text)

@@ -1,7 +1,8 @@
-"""Temporaries of atomic writes (``{name}.tmp-…-{pid}``): telling a killed writer's leftovers from a live one's."""
+"""Atomic writes through temporaries (``{name}.tmp-…-{pid}``), and telling a killed writer's leftovers from a live one's."""
 from __future__ import annotations
 
 import os
+from pathlib import Path
 
 
 def writer_is_gone(pid: str) -> bool:
@@ -16,3 +17,17 @@ def writer_is_gone(pid: str) -> bool:
     except PermissionError:  # alive, another user's
         return False
     return False
+
+
+def write_text_atomic(path: "str | Path", text: str) -> Path:
+    """`text` written to a temporary name in the same folder (parents created), then renamed over `path`: a reader
+    never sees a half-written file, and the temporary is removed whatever happens. Returns the path."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f"{path.name}.tmp-{os.getpid()}")
+    try:
+        tmp.write_text(text)
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return path

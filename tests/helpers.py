@@ -11,6 +11,8 @@ from hydra.core.global_hydra import GlobalHydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, open_dict
 
+from lnf.integrators import RK4
+
 CONF = str(Path(__file__).resolve().parents[1] / "conf")
 
 TINY = ["data.n_train=3", "data.n_val=1", "data.n_test=2", "data.n_times=20", "data.train_times=10",
@@ -49,3 +51,18 @@ def run_cli(args: list[str], root: Path, check: bool = True, timeout: int = 600)
 def result_metrics(metrics: dict) -> dict:
     """The metrics that a deterministic rerun must reproduce (no timings)."""
     return {k: v for k, v in metrics.items() if not any(t in k for t in TIMING)}
+
+
+class DivergesAtStep(RK4):
+    """RK4 that marks trajectory `which` as diverged at step `step` (through the integrator's own check)."""
+
+    def __init__(self, step: int, which: int = 1) -> None:
+        super().__init__()
+        self.at, self.which, self.calls = step, which, 0
+
+    def _bad(self, *xs):
+        self.calls += 1
+        bad = super()._bad(*xs)
+        if self.calls == self.at:
+            bad[self.which] = True
+        return bad

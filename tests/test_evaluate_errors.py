@@ -14,8 +14,7 @@ import pytest
 from omegaconf import OmegaConf
 
 import lnf
-from helpers import CONF, ROOT, TINY, compose_config
-from lnf.integrators import RK4
+from helpers import CONF, ROOT, TINY, DivergesAtStep, compose_config
 
 pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("evaluate_errors")]
 
@@ -178,21 +177,6 @@ def test_missing_checkpoint_path_is_a_clear_error(tmp_path):
 
 
 # -- 3. divergence with a place -------------------------------------------------------------------------------
-class DivergesAtStep(RK4):
-    """RK4 that marks trajectory `which` as diverged at step `step` (through the integrator's own check)."""
-
-    def __init__(self, step: int, which: int = 1) -> None:
-        super().__init__()
-        self.at, self.which, self.calls = step, which, 0
-
-    def _bad(self, *xs):
-        self.calls += 1
-        bad = super()._bad(*xs)
-        if self.calls == self.at:
-            bad[self.which] = True
-        return bad
-
-
 def _setup(ckpt):
     model = lnf.load(ckpt)
     scene = model.scene

@@ -9,7 +9,8 @@ import torch
 from lnf import metrics as M
 from lnf.evaluation import (chunked_energy, evaluate_rollouts, evaluation_cost, frame_block, reduction_subset,
                             trajectory_controls)
-from lnf.integrators import RK4, get_integrator
+from helpers import DivergesAtStep
+from lnf.integrators import get_integrator
 from lnf.model import build_model
 from lnf.quadrature import midpoint_grid
 
@@ -101,21 +102,6 @@ def test_chunked_evaluation_equals_the_unchunked_reference(model, case):
     np.testing.assert_allclose(chunked.pred_fields[0], pred_all[0], rtol=1e-6, atol=1e-7)
     np.testing.assert_array_equal(chunked.true_fields[0], true_all[0])
     np.testing.assert_allclose(chunked.q_ref, whole.q_ref, rtol=1e-6, atol=1e-7)
-
-
-class DivergesAtStep(RK4):
-    """RK4 that marks trajectory `which` as diverged at step `step` (through the integrator's own check)."""
-
-    def __init__(self, step: int, which: int = 1) -> None:
-        super().__init__()
-        self.at, self.which, self.calls = step, which, 0
-
-    def _bad(self, *xs):
-        self.calls += 1
-        bad = super()._bad(*xs)
-        if self.calls == self.at:
-            bad[self.which] = True
-        return bad
 
 
 def test_a_diverged_trajectory_gives_the_same_metrics_chunked(model, case):

@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import json
 import logging
-import os
 import time
 from pathlib import Path
 from typing import Any, Optional
@@ -15,21 +14,14 @@ import torch
 from lnf.evaluation import RolloutEvaluation, evaluate_rollouts, long_horizon_energy, reduction_subset
 from lnf.integrators import Integrator, get_integrator
 from lnf.quadrature import grid_shape_of, midpoint_grid
+from lnf.tempfiles import write_text_atomic
 
 log = logging.getLogger("lnf.evaluation")
 
 
 def write_json_atomic(path: str | Path, payload: dict[str, Any]) -> Path:
     """Write JSON to a temporary name in the same folder, then rename (no half-written file)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + f".tmp-{os.getpid()}")
-    try:
-        tmp.write_text(json.dumps(payload, indent=2, sort_keys=True))
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
-    return path
+    return write_text_atomic(path, json.dumps(payload, indent=2, sort_keys=True))
 
 
 def save_evaluation_figures(result: RolloutEvaluation, scene: Any, grid_shape: Optional[tuple[int, ...]],

@@ -21,12 +21,13 @@ import io
 import json
 import logging
 import math
-import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterator, Optional
 
 import yaml
+
+from lnf.tempfiles import write_text_atomic
 
 log = logging.getLogger("lnf.sweep")
 
@@ -161,16 +162,6 @@ def markdown_text(jobs: list[Job], sweep_dir: Path, optimized_metric: Optional[s
     return "\n".join(lines) + "\n"
 
 
-def _write_atomic(path: Path, text: str) -> None:
-    """`text` to a temporary name in the same folder, then renamed over `path`."""
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    try:
-        tmp.write_text(text)
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
-
-
 @contextlib.contextmanager
 def _locked(sweep_dir: Path) -> Iterator[None]:
     """An exclusive lock of the sweep dir's table (jobs that end together write in turn, the last one seeing every
@@ -204,8 +195,8 @@ def write_sweep_table(sweep_dir: "str | Path", optimized_metric: Optional[str] =
         if not jobs:
             return None
         csv_path, md_path = sweep_dir / CSV_NAME, sweep_dir / MARKDOWN_NAME
-        _write_atomic(csv_path, csv_text(jobs))
-        _write_atomic(md_path, markdown_text(jobs, sweep_dir, optimized_metric))
+        write_text_atomic(csv_path, csv_text(jobs))
+        write_text_atomic(md_path, markdown_text(jobs, sweep_dir, optimized_metric))
     return csv_path, md_path
 
 
@@ -235,7 +226,7 @@ class SweepTable(_HydraCallback):  # type: ignore[misc,valid-type]
         if status == "FAILED":
             record["error"] = _error_text(getattr(job_return, "_return_value", "unknown error"))
         try:
-            _write_atomic(job_dir / ".hydra" / STATUS_NAME, json.dumps(record, indent=2))
+            write_text_atomic(job_dir / ".hydra" / STATUS_NAME, json.dumps(record, indent=2))
         except OSError as err:
             log.warning("could not record the status of job %s in %s: %s", job_dir.name, job_dir, err)
         self._write(config)
