@@ -10,7 +10,8 @@ observed on 256 points with velocities; decoding 16 trajectories × 100 frames o
 * one training step (losses, backward, Adam update), median of repeated steps [s];
 * the matmul FLOPs the step needs (every forward-mode jet's products, backward counted as twice the forward),
   divided by this machine's best float32 GEMM throughput measured in the same run: the FLOP bound [s];
-* decoding (values only) of the same frames, and its bound.
+* decoding (values only) of the same frames, and its bound;
+* the same frames decoded through a Chebyshev table of φ in the code, where the checkout has one.
 
 A baseline commit is checked out with ``git worktree`` into a temporary folder and measured by the same
 function in a subprocess with that folder first on ``PYTHONPATH`` (same machine, same minute); the table
@@ -134,10 +135,27 @@ def measure(size: dict[str, int], threads: int) -> dict[str, Any]:
 
     decode_flops = jet_flops(frames * len(grid), W, L, 2, 1, 1)
     decode_seconds = _median_seconds(decode, repeats=3, warmup=1)
+    table: dict[str, Any] = {}
+    try:  # tabulated decoding of the same frames, where this checkout has it: the table's build included
+        from lnf.decoding_table import DecodingTable, code_box
+    except ImportError:
+        DecodingTable = None
+    if DecodingTable is not None:
+        def tabulated() -> None:
+            with torch.no_grad():
+                low, high = code_box(codes)
+                t = DecodingTable.build(lambda c: model.field(c, grid), low, high, codes, len(grid), 1)
+                for start in range(0, frames, chunk):
+                    t(codes[start:start + chunk])
+                table.update(nodes=t.n, error=t.error)
+
+        table["seconds"] = _median_seconds(tabulated, repeats=3, warmup=1)
     return {"lnf_version": lnf.__version__, "lnf_path": str(Path(lnf.__file__).parent), "jets_per_step": len(jets),
             "step_flops": step_flops, "step_seconds": step_seconds, "decode_flops": decode_flops,
             "decode_seconds": decode_seconds, "threads": threads,
-            "keeps_freed_memory": allocator}
+            "keeps_freed_memory": allocator,
+            **({"table_decode_seconds": table["seconds"], "table_nodes": table["nodes"],
+                "table_error": table["error"]} if table else {})}
 
 
 SIZES = {
@@ -183,6 +201,14 @@ def table(rows: dict[str, dict[str, Any]], peak: float) -> str:
                 f"{r['step_seconds'] / sb:.2f}", f"{r['step_flops'] / 1e9:.2f}", f"{r['decode_seconds']:.2f}",
                 f"{db:.2f}", f"{r['decode_seconds'] / db:.2f}"]
         out += f"| {name} | " + " | ".join(vals) + " |\n"
+    tabulated = {name: r for name, r in rows.items() if "table_decode_seconds" in r}
+    if tabulated:
+        out += ("\nThe same frames decoded through a Chebyshev table of φ in the code (lnf/decoding_table.py; the "
+                "time includes building the table):\n\n| checkout | tabulated decode [s] | nodes | error (of the "
+                "largest field) | × exact decoding |\n|---|---|---|---|---|\n")
+        for name, r in tabulated.items():
+            out += (f"| {name} | {r['table_decode_seconds']:.3f} | {r['table_nodes']} | {r['table_error']:.1e} | "
+                    f"{r['table_decode_seconds'] / r['decode_seconds']:.3f} |\n")
     if "baseline" in rows and "this checkout" in rows:
         a, b = rows["this checkout"], rows["baseline"]
         out += ("\nThis checkout against the baseline: training step time × "
@@ -217,8 +243,9 @@ def main(argv: list[str] | None = None) -> None:
                     print(f"[bench] round {k + 1}/{args.rounds}, {name}: step {1e3 * r['step_seconds']:.1f} ms, "
                           f"decode {r['decode_seconds']:.2f} s", flush=True)
                     best = rows.setdefault(name, r)
-                    for key in ("step_seconds", "decode_seconds"):
-                        best[key] = min(best[key], r[key])
+                    for key in ("step_seconds", "decode_seconds", "table_decode_seconds"):
+                        if key in r:
+                            best[key] = min(best[key], r[key])
         finally:
             if args.baseline:
                 subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(checkouts["baseline"])],

@@ -122,8 +122,9 @@ SPECS: dict[str, Spec] = {
                             metrics=PENDULUM_METRICS),
     "evaluate_readme": Spec("metrics", "python -m lnf.evaluate ckpt_path=<the pendulum_lr1e-3 run>/checkpoints/last.ckpt "
                             "integrator=rk4 integrator.substeps=5 dt=0.05 horizon=20 grid.kind=uniform "
-                            "grid.resolution=128 long_steps=10000", metrics=(
+                            "grid.resolution=128 long_steps=10000 dynamics=tabulated", metrics=(
         ("evaluation points", "evaluation_points"),
+        ("decoding table: nodes · error (of the largest field)", "decoding_table_nodes|decoding_table_error"),
         ("`field_rel_l2/all/median` · `/extrapolation/median`", "field_rel_l2/all/median|field_rel_l2/extrapolation/median"),
         ("rollout · rollout + decoding per trajectory [s]", "rollout_seconds_per_trajectory|fields_seconds_per_trajectory"),
         ("long-horizon check: steps · seconds", "energy_drift_long/steps|energy_drift_long/seconds"),
@@ -132,6 +133,8 @@ SPECS: dict[str, Spec] = {
     )),
     "bench_training": Spec("study", "python experiments/bench_training.py --baseline <commit>",
                            raw="outputs/studies/bench_training", csv="bench_training.json"),
+    "bench_training-tabulated": Spec("study", "python experiments/bench_training.py --baseline <commit>",
+                                     raw="outputs/studies/bench_training", csv="bench_training.json", table=1),
     # the worked example of docs/own_system.md, a scene kept outside the package
     **{f"{name}-vibrating_string": Spec(kind, f"PYTHONPATH=examples python experiments/{name}.py --config-dir examples/conf "
                                               f"--scene vibrating_string", raw=f"outputs/studies/{name}-vibrating_string",

@@ -134,7 +134,8 @@ def evaluations(study: S.Study, ckpts: dict[str, Path]) -> None:
                                                      + "]]"], "lnf.evaluate", {**lab, "study": "rotation"})
         # large time steps
         dts = "0.05,0.2" if smoke else "0.05,0.1,0.2,0.4,0.8"
-        study.multirun(f"dt_{integ}", [*common, f"dt={dts}", "max_trajectories=8"], "lnf.evaluate", {**lab, "study": "dt"})
+        study.multirun(f"dt_{integ}", [*common, f"dt={dts}", f"max_trajectories={2 if smoke else 8}"], "lnf.evaluate",
+                       {**lab, "study": "dt"})
         # resolution transfer, with each method's first integrator
         own = ",".join(str(ckpts[m]) for m in ckpts if INTEGRATORS[m][0] == integ)
         if own:
@@ -142,7 +143,8 @@ def evaluations(study: S.Study, ckpts: dict[str, Path]) -> None:
             base = [f"ckpt_path={own}", "figures=0", f"threads={study.threads}", f"integrator={integ}"]
             study.multirun(f"grid_{integ}", [*base, "grid.kind=uniform", f"grid.resolution={res}"], "lnf.evaluate",
                            {**lab, "study": "resolution"})
-            study.multirun(f"random_{integ}", [*base, "grid.kind=random", "grid.n_points=4096"], "lnf.evaluate",
+            study.multirun(f"random_{integ}", [*base, "grid.kind=random", f"grid.n_points={256 if smoke else 4096}"],
+                           "lnf.evaluate",
                            {**lab, "study": "resolution"})
     for row in study.rows[before:]:
         row["method"] = by_path[str(row["ckpt_path"])]

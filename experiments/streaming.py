@@ -195,6 +195,8 @@ def main() -> None:
     parser.add_argument("--warmup", type=int, default=3)
     parser.add_argument("--batch-size", type=int, default=32)
     parser.add_argument("--loader-batches", type=int, default=200, help="batches of the loader-only pass")
+    parser.add_argument("--runs", default="lazy,lazy-workers,in_memory-limited,in_memory",
+                        help="which runs (default all; in_memory, the baseline, is required)")
     parser.add_argument("--data-dir", type=Path, default=ROOT / "data" / "streaming")
     parser.add_argument("--out", type=Path, default=ROOT / "outputs" / "streaming" / "results.json")
     parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
@@ -213,10 +215,14 @@ def main() -> None:
         sys.exit(f"streaming.py needs a writable memory cgroup to place the limit ({exc}); run it as root on a "
                  f"machine with cgroups, or see docs/scaling.md for the numbers measured on ours")
     path, n_train = make_dataset(args.gib, args.data_dir)
-    rows = [run_child(args, path, n_train, "lazy", 0, limit),
-            run_child(args, path, n_train, "lazy", 2, limit),
-            run_child(args, path, n_train, "in_memory", 0, limit),
-            run_child(args, path, n_train, "in_memory", 0, None)]
+    runs = {"lazy": ("lazy", 0, limit), "lazy-workers": ("lazy", 2, limit),
+            "in_memory-limited": ("in_memory", 0, limit), "in_memory": ("in_memory", 0, None)}
+    chosen = [r.strip() for r in args.runs.split(",") if r.strip()]
+    unknown = sorted(set(chosen) - set(runs))
+    if unknown or "in_memory" not in chosen:
+        sys.exit(f"--runs {args.runs!r}: expected a comma list of {', '.join(runs)} that includes in_memory (the "
+                 f"baseline of the ratios){'; unknown: ' + ', '.join(unknown) if unknown else ''}")
+    rows = [run_child(args, path, n_train, *runs[name]) for name in runs if name in chosen]
     base = rows[-1]
     for row in rows:
         if "train_snapshots_per_s" in row and "train_snapshots_per_s" in base:

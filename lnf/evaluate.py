@@ -19,6 +19,7 @@ from omegaconf import DictConfig, OmegaConf
 from lnf.allocator import keep_freed_memory
 from lnf.config_keys import check_known_keys
 from lnf.dataset import SOURCE_ARRAYS, SPLITS, DatasetConfig, ensure_dataset, load_split, stored_generation, verify_dataset
+from lnf.decoding_table import DECODINGS
 from lnf.evaluation import evaluate_rollouts, evaluation_cost, long_horizon_energy, quadrature_size
 from lnf.model import build, load
 from lnf.quadrature import grid_shape_of, midpoint_grid
@@ -147,6 +148,8 @@ def check_settings(cfg: DictConfig) -> None:
     _integer(cfg, "figures", 0, "how many trajectories get a Figure 3; 0 draws none")
     _integer(cfg, "max_reduction_points", 1, "evaluation points that ρ̃ uses", "all of them")
     _integer(cfg, "threads", 1, "torch CPU threads", "torch's default")
+    if cfg.get("decoding", "auto") not in DECODINGS:
+        raise ValueError(f"decoding must be one of {', '.join(DECODINGS)}, got {cfg.get('decoding')!r}")
     kind = OmegaConf.select(cfg, "grid.kind", default="stored")
     if kind not in GRID_KINDS:
         raise ValueError(f"grid.kind must be 'stored', 'uniform' or 'random', got {kind!r}")
@@ -248,7 +251,7 @@ def evaluate(cfg: DictConfig) -> dict[str, float]:
                                true_velocities=split.velocities[:n] if use_stored else None,
                                integrator=integrator, quadrature=quadrature, grid_shape=grid_shape,
                                max_reduction_points=cfg.max_reduction_points, label=f"{cfg.split} rollout",
-                               keep_fields=int(cfg.figures), progress=True, **reference)
+                               keep_fields=int(cfg.figures), progress=True, decoding=str(cfg.get("decoding", "auto")), **reference)
     metrics = dict(result.metrics)
     if int(cfg.long_steps) > 0:
         k = min(int(cfg.long_trajectories), len(states))
@@ -257,7 +260,7 @@ def evaluate(cfg: DictConfig) -> dict[str, float]:
             model, states[:k, 0], points, dt, int(cfg.long_steps), integrator=integrator, quadrature=quadrature,
             grid_shape=grid_shape, max_reduction_points=cfg.max_reduction_points,
             initial_fields=(split.fields[:k, 0], split.velocities[:k, 0]) if stored_start else None,
-            controls=split.controls[:k] if own_states and split.controls is not None else None))
+            controls=split.controls[:k] if own_states and split.controls is not None else None, progress=True))
     metrics["evaluation_seconds"] = time.perf_counter() - start
     write_json_atomic(output_dir / "metrics.json", metrics)
     write_json_atomic(output_dir / "run.json", run_metadata(cfg))

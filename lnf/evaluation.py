@@ -18,6 +18,7 @@ import torch
 from torch import Tensor
 
 from lnf import metrics as M
+from lnf.decoding_table import DECODINGS, DecodingTable, TabulatedField, code_box
 from lnf.integrators import Integrator, get_integrator
 from lnf.reduced_model import ReducedModel
 from lnf.quadrature import Quadrature, QuadratureRule
@@ -257,18 +258,89 @@ def _valid_prediction_time(err: np.ndarray, ref: np.ndarray, weights: np.ndarray
 
 
 @contextlib.contextmanager
-def _progress(enabled: bool, total: int, description: str) -> Iterator[Callable[[int], None]]:
-    """A rich progress bar over `total` frames (``advance(k)``), or a no-op when not `enabled`."""
+def _progress(enabled: bool, total: int, description: str, unit: str = "frames") -> Iterator[Callable[[int], None]]:
+    """A rich progress bar over `total` `unit`s (``advance(k)``), or a no-op when not `enabled`."""
     if not enabled:
         yield lambda k: None
         return
     from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn,
                                TimeRemainingColumn)
 
-    with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TextColumn("frames"),
+    with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TextColumn(unit),
                   TimeElapsedColumn(), TextColumn("left"), TimeRemainingColumn()) as bar:
         task = bar.add_task(description, total=total)
         yield lambda k: bar.advance(task, k)
+
+
+def frame_decoder(model: ReducedModel, points: Tensor, decoding: str, codes: Tensor, field_dim: int,
+                  frames: int) -> tuple[Callable[[Tensor], Tensor], dict[str, float]]:
+    """The decoder of frames on `points` (N, dim_B) that :func:`evaluate_rollouts` uses, codes (B, d) → (B, N, A),
+    and the metrics that say which it is (see its `decoding`). `codes` (…, d) are the rollout's (their finite rows and
+    the training codes' range, where the model records one, make the table's box); `frames` is how many frames it
+    will decode twice (predicted and projected), the most a table may cost."""
+    if decoding not in DECODINGS:
+        raise ValueError(f"decoding must be one of {', '.join(DECODINGS)}, got {decoding!r}")
+
+    def exact(q: Tensor) -> Tensor:
+        return model.decode(q, points)
+
+    d = model.latent_dim
+    if decoding == "exact" or model.state_is_field or (decoding == "auto" and d > 2):
+        return exact, {"decoding_tabulated": 0.0}
+    ranges = [torch.stack([model.code_low, model.code_high])] if hasattr(model, "code_low") else []
+    low, high = code_box(codes, *ranges)
+    table = DecodingTable.build(exact, low, high, model.reference_tensor(), len(points), field_dim,
+                                budget=frames if decoding == "auto" else None)
+    if table is None:
+        if decoding == "tabulated":
+            log.warning("decoding=tabulated: no Chebyshev table meets its tolerance on these points (see the "
+                        "message above); the frames are decoded exactly")
+        return exact, {"decoding_tabulated": 0.0}
+    log.info("decoding through a Chebyshev table in the codes: %d nodes per axis on [%s .. %s], error %.2g of the "
+             "largest field, built in %.2f s", table.n, ", ".join(f"{v:.4g}" for v in low),
+             ", ".join(f"{v:.4g}" for v in high), table.error, table.info["decoding_table_seconds"])
+    return table, {"decoding_tabulated": 1.0, **{k: float(v) for k, v in table.info.items()}}
+
+
+def frame_reducer(model: ReducedModel, points: Tensor, decoding: str, codes: Tensor, field_dim: int,
+                  frames: int) -> tuple[Callable[[Tensor], Tensor], dict[str, float]]:
+    """ρ̃ of the true frames on the reduction points `points` (N_r, dim_B), values (B, N_r, A) → codes (B, d), and
+    the metrics that say how: where `decoding` tabulates and the model's K steps iterate on φ
+    (``reduces_through_field``), they read φ and ∂φ/∂q̃ from a Chebyshev table on these points (its box also holds
+    the reduction's start codes; the exact jet outside it), else the model's own reduce()."""
+    def exact(values: Tensor) -> Tensor:
+        return model.reduce(points, values)
+
+    if decoding == "exact" or not model.reduces_through_field or (decoding == "auto" and model.latent_dim > 2):
+        return exact, {"reduction_tabulated": 0.0}
+    field = model.field
+    ranges = [torch.stack([model.code_low, model.code_high])] if hasattr(model, "code_low") else []
+    starts = getattr(model, "starts", None)
+    low, high = code_box(codes, *ranges, *([starts] if starts is not None else []))
+
+    def jacobian(q: Tensor) -> Tensor:
+        return field.jet(q, points, order=1).J
+
+    def exact_jet(q: Tensor) -> tuple[Tensor, Tensor]:
+        jet = field.jet(q, points, order=1)
+        return jet.value, jet.J
+
+    # the K steps of every frame: a table that costs fewer jets than they do
+    table = DecodingTable.build(lambda q: model.decode(q, points), low, high, model.reference_tensor(), len(points),
+                                field_dim, jacobian=jacobian,
+                                budget=frames * getattr(model, "reduction_steps", 1) if decoding == "auto" else None)
+    if table is None:
+        return exact, {"reduction_tabulated": 0.0}
+    tabulated = TabulatedField(table, points, exact_jet)
+    log.info("reducing the true frames through a Chebyshev table of φ and ∂φ/∂q̃ on the %d reduction points: %d "
+             "nodes per axis, error %.2g", len(points), table.n, table.error)
+
+    def reduce(values: Tensor) -> Tensor:
+        return model.reduce(points, values, field=tabulated)
+
+    return reduce, {"reduction_tabulated": 1.0, "reduction_table_nodes": float(table.n),
+                    "reduction_table_error": float(table.error),
+                    "reduction_table_seconds": float(table.info["decoding_table_seconds"])}
 
 
 @torch.no_grad()
@@ -292,6 +364,7 @@ def evaluate_rollouts(
     keep_fields: Optional[int] = None,
     block_bytes: int = FRAME_BLOCK_BYTES,
     progress: bool = False,
+    decoding: str = "auto",
 ) -> RolloutEvaluation:
     """Roll out every trajectory of full-order `states` (n, T, S) sampled at `times` (T,) [s].
 
@@ -307,6 +380,12 @@ def evaluate_rollouts(
     trajectories (default: all) keep their predicted and true fields in the result (``pred_fields``,
     ``true_fields``, e.g. for Figure 3). The metrics do not depend on the blocks. `progress` shows a progress bar
     over the decoded frames (not inside a Lightning run, which has its own).
+
+    `decoding`: ``exact`` passes every frame through φ; ``tabulated`` decodes through a Chebyshev table of φ on
+    the evaluation points in the codes (:class:`lnf.decoding_table.DecodingTable`, its measured error ≤ 1e-5 of
+    the largest field, exact outside its box); ``auto`` (default) tabulates where it pays: latent dimension ≤ 2 and
+    a table cheaper than the frames it replaces. The metrics say which was used (``decoding_tabulated``, and the
+    table's ``decoding_table_nodes`` and ``decoding_table_error``); its build time counts as decoding time.
 
     Trajectories written from arrays give what a scene would compute from its states: `true_energies` (kinetic,
     potential) (n, T) each (else ``scene.true_energy_parts(states)``; with neither, the energy errors are left
@@ -373,7 +452,10 @@ def evaluate_rollouts(
     q_ref = torch.empty(frames, d, dtype=p.dtype, device=p.device)
     chunk = decode_batch(len(points), snapshot_chunk)
     block = frame_block(len(points), field_dim, chunk, block_bytes)  # a multiple of chunk: the same batches
-    decode_seconds = 0.0
+    tick = time.perf_counter()
+    decode, decoding_info = frame_decoder(model, pts, decoding, flat_q, field_dim, frames)
+    decode_seconds = time.perf_counter() - tick
+    reduce_frames, reduction_info = frame_reducer(model, pts_r, decoding, flat_q, field_dim, frames)
     with _progress(progress, frames, f"decoding the {label}") as advance:
         for k0 in range(0, frames, block):
             k1 = min(k0 + block, frames)
@@ -391,14 +473,14 @@ def evaluate_rollouts(
                 tick = time.perf_counter()
                 alive = finite[c0:c1]
                 if bool(alive.all()):
-                    pred[c0 - k0:c1 - k0] = model.decode(safe_q[c0:c1], pts)
+                    pred[c0 - k0:c1 - k0] = decode(safe_q[c0:c1])
                 else:  # frames after a divergence are NaN: not decoded
                     pred[c0 - k0:c1 - k0] = float("nan")
                     if bool(alive.any()):
-                        pred[c0 - k0:c1 - k0][alive] = model.decode(safe_q[c0:c1][alive], pts)
+                        pred[c0 - k0:c1 - k0][alive] = decode(safe_q[c0:c1][alive])
                 decode_seconds += time.perf_counter() - tick
-                q_ref[c0:c1] = model.reduce(pts_r, truth_r[c0 - k0:c1 - k0])
-                proj[c0 - k0:c1 - k0] = model.decode(q_ref[c0:c1], pts)
+                q_ref[c0:c1] = reduce_frames(truth_r[c0 - k0:c1 - k0])
+                proj[c0 - k0:c1 - k0] = decode(q_ref[c0:c1])
                 advance(c1 - c0)
             pred_np, proj_np = pred.double().cpu().numpy(), proj.double().cpu().numpy()
             err[k0:k1] = _frame_sq(pred_np - truth, weights)
@@ -445,6 +527,8 @@ def evaluate_rollouts(
     metrics["frames"] = float(T)
     metrics["evaluation_points"] = float(len(points))
     metrics["fields_seconds_per_trajectory"] = (rollout_seconds + decode_seconds) / n  # rollout + decoding
+    metrics.update(decoding_info)
+    metrics.update(reduction_info)
     for key in ("table_nodes", "table_points", "table_error", "table_seconds", "table_fallback_fraction"):  # offline cost of a tabulated dynamics
         if key in table_info:
             metrics[key] = float(table_info[key])
@@ -469,8 +553,11 @@ def long_horizon_energy(
     max_reduction_points: Optional[int] = 1024,
     initial_fields: Optional[tuple[np.ndarray, np.ndarray]] = None,
     controls: Optional[np.ndarray] = None,
+    progress: bool = False,
 ) -> dict[str, float]:
     """energy_drift = max_t |Ẽ(t) − Ẽ(0)| / E_scale over a `steps`-step rollout from full-order states (n, S).
+
+    `progress` shows a progress bar over the steps (not inside a Lightning run).
 
     Returns `energy_drift_long/{median,max,steps,seconds}` and where the rollout diverged:
     `diverged_count_long`, `diverged_fraction_long`, `first_divergence_step_long` and
@@ -491,10 +578,12 @@ def long_horizon_energy(
     q0 = model.reduce(pts, torch.as_tensor(q_true, dtype=p.dtype, device=p.device))
     v0 = model.project_velocity(q0, pts, torch.as_tensor(v_true, dtype=p.dtype, device=p.device))
     start = time.perf_counter()
-    traj = model.rollout(q0, v0, dt=dt, steps=steps, integrator=integrator, quadrature=quadrature,
-                         record_every=record_every, on_divergence="mark",
-                         controls=trajectory_controls(scene, states0, q0) if controls is None else
-                         torch.as_tensor(np.asarray(controls), dtype=q0.dtype, device=q0.device))
+    with _progress(progress, int(steps), f"long-horizon check ({len(q0)} trajectories)", "steps") as advance:
+        traj = model.rollout(q0, v0, dt=dt, steps=steps, integrator=integrator, quadrature=quadrature,
+                             record_every=record_every, on_divergence="mark",
+                             controls=trajectory_controls(scene, states0, q0) if controls is None else
+                             torch.as_tensor(np.asarray(controls), dtype=q0.dtype, device=q0.device),
+                             progress=advance if progress else None)
     seconds = time.perf_counter() - start
     shape = traj.q.shape[:-1]
     kin, pot = chunked_energy(model, torch.nan_to_num(traj.q).reshape(-1, traj.q.shape[-1]),

@@ -138,6 +138,8 @@ class LagrangianNeuralField(ReducedModel):
     Defaults are those of ``conf/model/lnf.yaml``: w0 = 10 rather than the paper's 30, and λ_v = 0.1 (see docs/choices.md).
     """
 
+    reduces_through_field = True  # reduce(field=...): the K steps iterate on any φ with a jet (a table of it, too)
+
     def __init__(
         self,
         scene: Scene,
@@ -203,21 +205,26 @@ class LagrangianNeuralField(ReducedModel):
     def step_size(self) -> Tensor:
         return self.log_step_size.exp()
 
-    def reduce(self, points: Tensor, values: Tensor, steps: Optional[int] = None) -> Tensor:
-        """ρ̃(q): observed field values (B, N, A) at points (N or B, N, dim_B) → codes (B, d)."""
+    def reduce(self, points: Tensor, values: Tensor, steps: Optional[int] = None, field: Any = None) -> Tensor:
+        """ρ̃(q): observed field values (B, N, A) at points (N or B, N, dim_B) → codes (B, d).
+
+        `field`: the φ the K steps iterate on, if not the model's own (e.g. a
+        :class:`lnf.decoding_table.TabulatedField` of it on these points)."""
         values = as_field(values)
         points = points.to(values)
         self._check_observation(points, values, "values")
         density = self._density(points)
-        return self._reduce(points, values, density, steps or self.reduction_steps)
+        return self._reduce(points, values, density, steps or self.reduction_steps, field)
 
-    def _start(self, points: Tensor, values: Tensor, density: Tensor) -> Optional[Tensor]:
+    def _start(self, points: Tensor, values: Tensor, density: Tensor, field: Any = None) -> Optional[Tensor]:
         """The K steps' initial codes (B, d): the best of the start grid, or None (q̃^0 = 0) with one start."""
-        return best_start(self.field, points, values, density, self.starts) if len(self.starts) > 1 else None
+        field = self.field if field is None else field
+        return best_start(field, points, values, density, self.starts) if len(self.starts) > 1 else None
 
-    def _reduce(self, points: Tensor, values: Tensor, density: Tensor, steps: int) -> Tensor:
-        codes = self._start(points, values, density)
-        return reduce(self.field, points, values, density, self.step_size, steps, codes=codes)
+    def _reduce(self, points: Tensor, values: Tensor, density: Tensor, steps: int, field: Any = None) -> Tensor:
+        field = self.field if field is None else field
+        codes = self._start(points, values, density, field)
+        return reduce(field, points, values, density, self.step_size, steps, codes=codes)
 
     def dynamics(self, quadrature: "Quadrature | QuadratureRule | None" = None) -> Any:
         """The pulled-back Lagrangian system (tabulated if ``tabulation`` is set), or the learned latent

@@ -9,7 +9,8 @@ Our model (:class:`lnf.model.LagrangianNeuralField`) and the POD-Galerkin baseli
 from __future__ import annotations
 
 import copy
-from typing import Any, Optional
+import inspect
+from typing import Any, Callable, Optional
 
 import torch
 from torch import Tensor, nn
@@ -35,6 +36,7 @@ class ReducedModel(nn.Module):
 
     trainable: bool = True
     state_is_field: bool = False  # True for the full-order model: its "codes" are the nodal field itself
+    reduces_through_field: bool = False  # True where reduce() takes field= (ρ̃ iterates on φ: a table of φ may stand in)
     field: nn.Module
 
     def __init__(self, scene: Scene, quadrature: Optional[QuadratureRule] = None) -> None:
@@ -117,11 +119,13 @@ class ReducedModel(nn.Module):
     def rollout(self, q0: Tensor, v0: Tensor, dt: float, steps: int,
                 integrator: "str | Integrator | dict" = "implicit_midpoint", record_every: int = 1,
                 quadrature: "Quadrature | QuadratureRule | None" = None,
-                on_divergence: str = "raise", controls: Optional[Tensor] = None, dynamics: Any = None) -> Trajectory:
+                on_divergence: str = "raise", controls: Optional[Tensor] = None, dynamics: Any = None,
+                progress: Optional[Callable[[int], None]] = None) -> Trajectory:
         """Integrate the reduced dynamics from (q̃0, q̃̇0) (B, d) for `steps` steps of `dt` [s].
 
         `controls` (B, c): per-trajectory load parameters of a forced scene (:meth:`Scene.controls`).
         `dynamics`: what :meth:`dynamics` (`quadrature`) returned, if the caller already built it.
+        `progress(k)`: told of every k steps done (e.g. a progress bar's advance).
         """
         dynamics = self.dynamics(quadrature) if dynamics is None else dynamics
         if controls is not None:
@@ -130,9 +134,13 @@ class ReducedModel(nn.Module):
             if controls.ndim != 2 or controls.shape[0] != q0.shape[0]:
                 raise ValueError(f"controls must have shape (B={q0.shape[0]}, c), got {tuple(controls.shape)}")
             dynamics.controls = controls.to(q0)
+        integ = get_integrator(integrator)
+        # an integrator of a user's own whose integrate() takes no progress callback runs without a progress bar
+        extra = {"progress": progress} if progress is not None and \
+            "progress" in inspect.signature(integ.integrate).parameters else {}
         with torch.no_grad():
-            return get_integrator(integrator).integrate(dynamics, q0, v0, dt, steps,
-                                                        record_every=record_every, on_divergence=on_divergence)
+            return integ.integrate(dynamics, q0, v0, dt, steps, record_every=record_every,
+                                   on_divergence=on_divergence, **extra)
 
     def energy(self, q: Tensor, v: Tensor, quadrature: "Quadrature | QuadratureRule | None" = None
                ) -> tuple[Tensor, Tensor]:

@@ -39,11 +39,13 @@ class ChebyshevTable:
 
     Built from values `f_nodes` (n, …, n, c) at Chebyshev points of the first kind
     (``numpy.polynomial.chebyshev.chebpts1``) on each axis; :meth:`__call__` returns (B, 1 + d, c): the
-    values and ∂f/∂q_i (i = 1…d) of the interpolating polynomial at q (B, d).
+    values and ∂f/∂q_i (i = 1…d) of the interpolating polynomial at q (B, d); (B, 1, c), the values only, when
+    built with ``derivatives=False``. ``keep_float64=False`` keeps no float64 copy of the coefficients.
     """
 
     def __init__(self, f_nodes: np.ndarray, low: Sequence[float], high: Sequence[float],
-                 dtype: torch.dtype = torch.float64, device: "torch.device | str" = "cpu") -> None:
+                 dtype: torch.dtype = torch.float64, device: "torch.device | str" = "cpu",
+                 derivatives: bool = True, keep_float64: bool = True) -> None:
         d = len(low)
         n = f_nodes.shape[0]
         if f_nodes.ndim != d + 1 or any(s != n for s in f_nodes.shape[:d]):
@@ -57,14 +59,14 @@ class ChebyshevTable:
         for axis in range(d):
             coef = np.moveaxis(np.tensordot(inv_vander, coef, axes=([1], [axis])), 0, axis)
         blocks = [coef]
-        for axis in range(d):  # ∂/∂q_axis = chebder along that axis × dx/dq
+        for axis in range(d if derivatives else 0):  # ∂/∂q_axis = chebder along that axis × dx/dq
             der = C.chebder(coef, axis=axis) * (2.0 / (hi[axis] - lo[axis]))
             pad = [(0, 0)] * coef.ndim
             pad[axis] = (0, 1)
             blocks.append(np.pad(der, pad))
-        packed = np.stack(blocks, axis=-2)  # (n, …, n, 1 + d, c)
+        packed = np.stack(blocks, axis=-2)  # (n, …, n, 1 + d, c), or (n, …, n, 1, c) without derivatives
         self.coef = torch.as_tensor(packed, dtype=dtype, device=device)
-        self.coef64 = torch.as_tensor(packed, dtype=torch.float64, device=device)
+        self.coef64 = torch.as_tensor(packed, dtype=torch.float64, device=device) if keep_float64 else None
         self.center = torch.as_tensor((hi + lo) / 2, dtype=dtype, device=device)
         self.half = torch.as_tensor((hi - lo) / 2, dtype=dtype, device=device)
         self.k = torch.arange(n, dtype=dtype, device=device)

@@ -6,6 +6,9 @@ import torch
 
 os.environ.setdefault("WANDB_MODE", "offline")
 os.environ.setdefault("WANDB_SILENT", "true")
+# Figures as PNG alone (a vector PDF beside each costs about a second per figure, in every training run of the
+# suite); the tests that check the PDF set LNF_FIGURE_PDF=1 themselves.
+os.environ.setdefault("LNF_FIGURE_PDF", "0")
 # The suite runs in pytest-xdist workers (pyproject's addopts): share the cores among them, here and in the
 # subprocesses the end-to-end tests start, instead of each worker's torch spinning threads on every core.
 _WORKERS = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))

@@ -83,3 +83,16 @@ def test_progress_bar_metrics_are_in_scientific_notation_without_v_num():
 
     bar = MetricsProgressBar()
     assert bar.get_metrics(Trainer(), None) == {"train/loss": "1.23e-04", "val/loss": "5.00e-01"}
+
+
+def test_font_subsetting_of_pdf_figures_is_not_logged(monkeypatch):
+    """matplotlib's PDF backend subsets fonts with fontTools, which logs every glyph list at INFO (an evaluation
+    under Hydra's INFO root logger printed about 40 such lines per figure); a level the user chose is kept."""
+    fonts = logging.getLogger("fontTools")
+    monkeypatch.setattr(fonts, "level", logging.NOTSET)
+    quiet_console()
+    assert not logging.getLogger("fontTools.subset").isEnabledFor(logging.INFO)
+    fonts.setLevel(logging.DEBUG)
+    quiet_console()
+    assert fonts.level == logging.DEBUG
+    fonts.setLevel(logging.NOTSET)

@@ -85,7 +85,8 @@ def test_chunked_evaluation_equals_the_unchunked_reference(model, case):
     states, times, points, fields, velocities = case
     reference, pred_all, true_all = unchunked_reference(model, states, times, points, 0.35, fields, velocities,
                                                         (10, 10), 25)
-    kw = dict(true_fields=fields, true_velocities=velocities, grid_shape=(10, 10), max_reduction_points=25)
+    kw = dict(true_fields=fields, true_velocities=velocities, grid_shape=(10, 10), max_reduction_points=25,
+              decoding="exact")  # the reference decodes exactly, to 1e-6
     whole = evaluate_rollouts(model, states, times, points, 0.35, **kw)
     # blocks of 4 frames (2 decoding batches of 2), across trajectory boundaries (14 frames each); one trajectory kept
     block_bytes = 4 * len(points) * 8
@@ -150,3 +151,23 @@ def test_the_cost_is_said_in_words():
     assert cost.peak_bytes < cost.unchunked_bytes / 4  # bounded: not all fields at once
     other = evaluation_cost(16, 100, 20000, 1, keep_fields=2, quadrature_points=4096, trained_quadrature_points=64)
     assert "the checkpoint's rule has 64: the rollout costs about 64× as much" in other.describe()
+
+
+def test_the_long_horizon_check_counts_its_steps_on_a_progress_bar(model, case, monkeypatch):
+    from lnf import evaluation
+
+    states, _, points, _, _ = case
+    seen = []
+
+    @evaluation.contextlib.contextmanager
+    def recording(enabled, total, description, unit="frames"):
+        seen.append((enabled, total, unit))
+        done = []
+        yield done.append
+        seen.append(sum(done))
+
+    monkeypatch.setattr(evaluation, "_progress", recording)
+    shown = evaluation.long_horizon_energy(model, states[:, 0], points, 0.05, 30, integrator="rk4", progress=True)
+    assert seen == [(True, 30, "steps"), 30]
+    quiet = evaluation.long_horizon_energy(model, states[:, 0], points, 0.05, 30, integrator="rk4")
+    assert {k: v for k, v in shown.items() if "seconds" not in k} == {k: v for k, v in quiet.items() if "seconds" not in k}

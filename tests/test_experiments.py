@@ -43,6 +43,9 @@ def test_bench_training_measures_this_checkout_and_a_baseline_commit_in_the_same
     summary = (out / "summary.md").read_text()
     assert summary.startswith("Machine: ") and "Command: `python experiments/bench_training.py --smoke --baseline HEAD`" in summary
     assert "against the baseline: training step time ×" in summary
+    table = raw["rows"]["this checkout"]  # this checkout decodes through a table too, and measures its error
+    assert table["table_decode_seconds"] > 0 and table["table_nodes"] >= 16 and 0 <= table["table_error"] <= 1e-5
+    assert "| this checkout | " in summary.split("Chebyshev table")[1]
     assert not [p for p in out.iterdir() if p.name.startswith(".")]
     worktrees = subprocess.run(["git", "-C", str(ROOT), "worktree", "list"], capture_output=True, text=True).stdout
     assert "lnf-bench-" not in worktrees
@@ -74,7 +77,7 @@ def studies(tmp_path):
 def _study(name, folder, *extra, tag=""):
     import os
 
-    env = {**os.environ, "LNF_DATA_DIR": str(folder / "data")}
+    env = {**os.environ, "LNF_DATA_DIR": str(folder / "data"), "LNF_FIGURE_PDF": "1"}  # _assert_figure wants the PDF
     out = folder / f"{name}-smoke{tag}"
     proc = subprocess.run([sys.executable, f"experiments/{name}.py", "--smoke", "--threads", "1", "--out", str(out),
                            *extra], cwd=ROOT, capture_output=True, text=True, timeout=600, env=env)
@@ -161,8 +164,9 @@ def test_model_size_study_smoke(studies):
     _assert_figure(out, "model_size")
 
 
-def test_model_size_plot_draws_diverged_runs(tmp_path):
+def test_model_size_plot_draws_diverged_runs(tmp_path, monkeypatch):
     """A sweep where every run diverged (inf error, as a 1-epoch elastic model does) is charted, not a crash."""
+    monkeypatch.setenv("LNF_FIGURE_PDF", "1")  # _assert_figure checks the PDF too
     sys.path.insert(0, str(ROOT / "experiments"))
     import studylib
     from model_size import ERR, plot
@@ -177,6 +181,7 @@ def test_model_size_plot_draws_diverged_runs(tmp_path):
 def test_sparse_noisy_plot_legends_only_what_it_draws(tmp_path, monkeypatch):
     """A method the scene cannot run gets no legend entry; a diverged full-order reference gets no line at
     infinity but says "diverged" in the legend (the bump: the nodal model does not keep its shape)."""
+    monkeypatch.setenv("LNF_FIGURE_PDF", "1")  # _assert_figure checks the PDF too
     sys.path.insert(0, str(ROOT / "experiments"))
     import matplotlib.axes
     import studylib
@@ -322,12 +327,11 @@ def test_a_study_takes_a_config_dir_and_the_relative_paths_of_the_folder_it_is_r
     assert "--config-dir" in capsys.readouterr().err
 
 
-def test_pareto_stability_and_scenes_run_the_vibrating_string_from_its_own_folder(tmp_path):
+def test_pareto_and_scenes_run_the_vibrating_string_from_its_own_folder(tmp_path):
     """Started from a folder that is not the repository, as a user would: the example's module on a relative
     PYTHONPATH, a relative data dir (LNF_DATA_DIR) and relative output folders, which the studies' jobs (run in the
-    repository root) must see as the caller meant them; the config folder absolute for one study, relative for the
-    other. The string is a 1-D body: no nodal full-order model; it defines released_at_rest() but no
-    stability_cases(), so the stability study skips its high-energy part and says why."""
+    repository root) must see as the caller meant them; the config folder relative for the study, absolute for
+    scenes.py. The string is a 1-D body: no nodal full-order model."""
     work = tmp_path / "work"
     work.mkdir()
     env = {**os.environ, "PYTHONPATH": os.path.relpath(EXAMPLES, work), "LNF_DATA_DIR": "data",
@@ -340,7 +344,7 @@ def test_pareto_stability_and_scenes_run_the_vibrating_string_from_its_own_folde
         return proc.stdout
 
     scene = ["--scene", "vibrating_string", "--smoke", "--threads", "1"]
-    stdout = run("pareto.py", "--config-dir", str(EXAMPLES / "conf"), *scene, "--out", "pareto")
+    stdout = run("pareto.py", "--config-dir", os.path.relpath(EXAMPLES / "conf", work), *scene, "--out", "pareto")
     out = (work / "pareto").resolve()
     rows = _csv(out / "pareto.csv")
     assert _methods(rows) == {"lnf", "latent_mlp", "pod"}  # Scene.baselines(): no full-order model of a 1-D body
@@ -353,17 +357,6 @@ def test_pareto_stability_and_scenes_run_the_vibrating_string_from_its_own_folde
     assert "--config-dir examples/conf --scene vibrating_string" in summary and "PYTHONPATH=examples" in summary
     assert (out / "pareto.png").stat().st_size > 0 and (out / "quadrature.png").stat().st_size > 0
 
-    stdout = run("stability.py", "--config-dir", os.path.relpath(EXAMPLES / "conf", work), *scene,
-                 "--out", "stability")
-    out = work / "stability"
-    rows = _csv(out / "stability.csv")
-    assert _methods(rows) == {"lnf", "latent_mlp", "pod"}
-    assert {r["study"] for r in rows} == {"train", "long", "dt", "resolution"}  # no high_energy rows
-    note = "defines released_at_rest() but no stability_cases()"
-    assert note in stdout and note in (out / "summary.md").read_text()
-    assert "| 8 points |" in (out / "summary.md").read_text()  # the 1-D grid of the resolution transfer
-    assert (out / "stability.png").stat().st_size > 0
-
     # the acceptance measurements the string's declarations allow, on the Pareto study's width-16 model
     run("scenes.py", "--config-dir", str(EXAMPLES / "conf"), "--scene", "vibrating_string", "--ckpt",
         "pareto/lnf_width/0/checkpoints/last.ckpt", "--out", "scenes", "--max-modes", "2", "--bb-iterations", "10",
@@ -372,6 +365,23 @@ def test_pareto_stability_and_scenes_run_the_vibrating_string_from_its_own_folde
     assert result["measurements"] == ["black_box", "modes"]
     assert set(result["skipped"]) == {"speedup", "loads", "decay"} and len(result["pod"]) == 2
     assert (work / "scenes" / "vpt.png").is_file() and (work / "scenes" / "modes.png").is_file()
+
+
+def test_stability_on_the_vibrating_string_skips_its_high_energy_part_and_says_why(monkeypatch):
+    """The string defines released_at_rest() but no stability_cases(): the stability study has no high-energy part
+    (the other questions run as on any scene, see test_stability_study_smoke_*) and says what would add one; its
+    resolution transfer is labelled in points of a 1-D grid."""
+    sys.path.insert(0, str(ROOT / "experiments"))
+    import stability
+    import studylib as S
+
+    monkeypatch.syspath_prepend(str(EXAMPLES))
+    study, _ = S.parse_args("stability", "", ["--config-dir", str(EXAMPLES / "conf"), "--scene", "vibrating_string",
+                                              "--smoke"])
+    assert stability.stress_cases(study) is None
+    note = stability.skipped_high_energy(study)
+    assert "defines released_at_rest() but no stability_cases()" in note and "StabilityCases" in note
+    assert stability.grid_name({"grid.kind": "uniform", "grid.resolution": "8"}, 1) == "8 points"
 
 
 def test_stability_high_energy_states_per_scene():
@@ -514,7 +524,8 @@ def test_streaming_benchmark_smoke(tmp_path):
     """experiments/streaming.py on a tiny dataset: it needs a writable memory cgroup, and says so without one."""
     out = tmp_path / "results.json"
     proc = subprocess.run([sys.executable, "experiments/streaming.py", "--gib", "0.02", "--limit-gib", "1.5",
-                           "--steps", "2", "--warmup", "1", "--loader-batches", "3", "--data-dir", str(tmp_path / "data"),
+                           "--steps", "2", "--warmup", "1", "--loader-batches", "3", "--runs", "lazy,in_memory",
+                           "--data-dir", str(tmp_path / "data"),
                            "--out", str(out)], cwd=ROOT, capture_output=True, text=True, timeout=600)
     if "needs a writable memory cgroup" in proc.stderr:
         assert proc.returncode != 0 and not out.exists()

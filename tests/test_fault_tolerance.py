@@ -1,4 +1,5 @@
 """Runs that survive: SIGKILL and resume, DDP on two CPU processes, exact reproducibility (CLI, tiny settings)."""
+import os
 import json
 import signal
 from pathlib import Path
@@ -69,7 +70,8 @@ def test_ddp_on_two_cpu_processes_matches_one_process_and_writes_once(reference,
         assert ddp[key] == pytest.approx(value, rel=1e-4, abs=1e-9), key
     assert len(list(run_dir.glob("wandb/offline-run-*"))) == 1
     assert len(list(run_dir.glob("csv/version_*"))) == 1
-    assert sorted(p.name for p in (run_dir / "figures").iterdir()) == ["test_trajectory0.pdf", "test_trajectory0.png"]
+    drawn = ["test_trajectory0.png"] + (["test_trajectory0.pdf"] if os.environ.get("LNF_FIGURE_PDF") != "0" else [])
+    assert sorted(p.name for p in (run_dir / "figures").iterdir()) == sorted(drawn)  # by rank 0 alone
     assert len(list(run_dir.rglob("metrics.json"))) == 1 and len(list(run_dir.rglob("run.json"))) == 1
     assert (run_dir / "checkpoints" / "last.ckpt").exists()
 

@@ -98,3 +98,12 @@ def test_settings_of_another_integrator_are_a_clear_error():
 
     with pytest.raises(ValueError, match=r"integrator rk4 takes no integrator.order .* ~integrator.order"):
         get_integrator({"name": "rk4", "order": 2})
+
+
+@pytest.mark.parametrize("integrator", [RK4(substeps=2), ImplicitMidpoint(order=4), Dopri5()])
+def test_progress_hears_of_every_step(dyn, integrator):
+    """The progress callback (a progress bar's advance) is told of all `steps`, whatever the integrator."""
+    done = []
+    q0, v0 = torch.tensor(STATE[:, :1]), torch.tensor(STATE[:, 1:])
+    traj = integrator.integrate(dyn, q0, v0, 0.05, 12, record_every=3, progress=done.append)
+    assert sum(done) == 12 and traj.q.shape[1] == 5

@@ -24,6 +24,12 @@ G = (16, 16)
 BOUNDS = ((-1.0, 1.0), (-1.0, 1.0))
 
 
+@pytest.fixture(autouse=True)
+def vector_figures(monkeypatch):
+    """The suite writes PNGs alone (conftest.py); these tests check the PDF beside each PNG too."""
+    monkeypatch.setenv("LNF_FIGURE_PDF", "1")
+
+
 @pytest.fixture(scope="module")
 def data():
     """Synthetic lifted-pendulum-like data: q(X, t) = u(X) θ(t) on a 16×16 grid."""
@@ -580,6 +586,7 @@ def test_evaluation_figures_name_the_integrator_and_time_step(data, tmp_path, mo
         assert paths == [tmp_path / "test_trajectory0.png", tmp_path / "test_trajectory1.png"]
         assert titles == [f"test trajectory {i} · {words}" for i in range(2)]
     monkeypatch.undo()
+    monkeypatch.setenv("LNF_FIGURE_PDF", "1")  # undo() took the vector_figures fixture's setting back too
     out = save_evaluation_figures(result, scene, G, H, tmp_path / "real", "test", 1, integrator="rk4")
     assert out[0].read_bytes()[:8] == PNG_MAGIC and out[0].with_suffix(".pdf").read_bytes()[:4] == PDF_MAGIC
 

@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Optional, Protocol
+from typing import Callable, Optional, Protocol
 
 import torch
 from torch import Tensor
@@ -64,7 +64,9 @@ class Integrator:
         return f"{type(self).__name__}(substeps={self.substeps})"
 
     def integrate(self, dynamics: Dynamics, q0: Tensor, v0: Tensor, dt: float, steps: int,
-                  record_every: int = 1, t0: float = 0.0, on_divergence: str = "raise") -> Trajectory:
+                  record_every: int = 1, t0: float = 0.0, on_divergence: str = "raise",
+                  progress: Optional[Callable[[int], None]] = None) -> Trajectory:
+        """`steps` steps of `dt` from (q0, v0) (B, d); `progress(k)`, if given, is told of every k steps done."""
         raise NotImplementedError
 
     # -- shared helpers ---------------------------------------------------------------------------
@@ -103,7 +105,8 @@ class FixedStepIntegrator(Integrator):
 
     @torch.no_grad()
     def integrate(self, dynamics: Dynamics, q0: Tensor, v0: Tensor, dt: float, steps: int,
-                  record_every: int = 1, t0: float = 0.0, on_divergence: str = "raise") -> Trajectory:
+                  record_every: int = 1, t0: float = 0.0, on_divergence: str = "raise",
+                  progress: Optional[Callable[[int], None]] = None) -> Trajectory:
         self._check_args(q0, v0, dt, steps, record_every, on_divergence)
         B = q0.shape[0]
         h = dt / self.substeps
@@ -130,6 +133,8 @@ class FixedStepIntegrator(Integrator):
                 # freeze dead trajectories at a harmless state so they do not poison batched solves
                 state = tuple(torch.where(alive[:, None], s, s0) for s, s0 in
                               zip(state, self._to_internal(dynamics, q0, v0)))
+            if progress is not None:
+                progress(1)
             if n % record_every == 0:
                 q, v = self._to_qv(dynamics, state)
                 r = n // record_every

@@ -1,6 +1,8 @@
 """Adaptive Dormand–Prince 5(4) from torchdiffeq, for reference solutions."""
 from __future__ import annotations
 
+from typing import Callable, Optional
+
 import torch
 from torch import Tensor
 from torchdiffeq import odeint
@@ -20,7 +22,8 @@ class Dopri5(Integrator):
 
     @torch.no_grad()
     def integrate(self, dynamics: Dynamics, q0: Tensor, v0: Tensor, dt: float, steps: int,
-                  record_every: int = 1, t0: float = 0.0, on_divergence: str = "raise") -> Trajectory:
+                  record_every: int = 1, t0: float = 0.0, on_divergence: str = "raise",
+                  progress: Optional[Callable[[int], None]] = None) -> Trajectory:
         self._check_args(q0, v0, dt, steps, record_every, on_divergence)
         d = q0.shape[1]
         n_rec = steps // record_every + 1
@@ -35,6 +38,8 @@ class Dopri5(Integrator):
             ys = odeint(rhs, y0, times.to(q0.dtype), rtol=self.rtol, atol=self.atol, method="dopri5")
         except AssertionError as err:  # torchdiffeq signals step-size underflow with an assertion
             raise RolloutDivergedError(-1, float("nan"), list(range(q0.shape[0])), self.name, dt) from err
+        if progress is not None:  # torchdiffeq integrates the whole span in one call
+            progress(steps)
         ys = ys.transpose(0, 1)  # (B, T, 2d)
         bad = ~torch.isfinite(ys).all(-1) | (ys.abs() > self.max_abs).any(-1)  # (B, T)
         diverged = torch.where(bad.any(-1), bad.float().argmax(-1) * record_every, -1)

@@ -11,6 +11,7 @@ import lightning.pytorch as pl
 import numpy as np
 import torch
 
+from lnf.decoding_table import DECODINGS
 from lnf.evaluation import RolloutEvaluation, evaluate_rollouts, long_horizon_energy, reduction_subset
 from lnf.integrators import Integrator, get_integrator
 from lnf.quadrature import grid_shape_of, midpoint_grid
@@ -119,12 +120,14 @@ class RolloutEvaluationCallback(pl.Callback):
         figures: how many test trajectories get a Figure 3.
         max_reduction_points: ρ̃ of the true fields uses an evenly strided subset of at most this many
             evaluation points (decoding and errors use all of them).
+        decoding: ``auto`` | ``exact`` | ``tabulated``: how test and validation frames are decoded
+            (:func:`lnf.evaluation.evaluate_rollouts`).
     """
 
     def __init__(self, integrator: "Integrator | dict | str" = "implicit_midpoint", output_dir: str = ".",
                  every_n_epochs: int = 5, val_trajectories: int = 4, val_resolution: int = 32,
                  long_steps: int = 10000, long_trajectories: int = 4, long_dt: float = 0.05,
-                 figures: int = 2, max_reduction_points: Optional[int] = 1024) -> None:
+                 figures: int = 2, max_reduction_points: Optional[int] = 1024, decoding: str = "auto") -> None:
         super().__init__()
         try:
             self.integrator = get_integrator(integrator)
@@ -138,6 +141,9 @@ class RolloutEvaluationCallback(pl.Callback):
         self.long_trajectories = _count("long_trajectories", long_trajectories, minimum=1)
         self.long_dt = _positive("long_dt", long_dt)
         self.figures = _count("figures", figures)
+        if decoding not in DECODINGS:
+            raise ValueError(f"evaluation.decoding must be one of {', '.join(DECODINGS)}, got {decoding!r}")
+        self.decoding = decoding
         self.max_reduction_points = None if max_reduction_points is None else \
             _count("max_reduction_points", max_reduction_points, minimum=1)
         self.test_metrics: dict[str, float] = {}
@@ -177,6 +183,7 @@ class RolloutEvaluationCallback(pl.Callback):
             result = evaluate_rollouts(pl_module.model, split.states[:n], split.times, points,
                                        self._train_horizon(split), integrator=self.integrator,
                                        label=f"validation rollout (epoch {trainer.current_epoch})",
+                                       decoding=self.decoding,
                                        **truth, **stored_reference(split, scene, n, sub if stored else None))
         keys = ["field_rel_l2/all/median", "field_rel_l2/extrapolation/median", "projection_rel_l2/all/median",
                 "energy_rel_err/max", "latent_rmse/median", "vpt/median"]
@@ -194,6 +201,7 @@ class RolloutEvaluationCallback(pl.Callback):
                                        true_fields=split.fields, true_velocities=split.velocities,
                                        integrator=self.integrator, grid_shape=grid_shape,
                                        max_reduction_points=self.max_reduction_points, label="test rollout",
+                                       decoding=self.decoding,
                                        **stored_reference(split, model.scene, len(split)))
             metrics = dict(result.metrics)
             if self.long_steps > 0:

@@ -80,6 +80,9 @@ def quiet_console() -> None:
         logger = logging.getLogger(name)
         if not any(isinstance(f, MessageFilter) for f in logger.filters):
             logger.addFilter(MessageFilter(patterns))
+    fonts = logging.getLogger("fontTools")  # matplotlib's PDF backend subsets fonts with it: 40 INFO lines a figure
+    if fonts.level == logging.NOTSET:  # a level the user set is kept
+        fonts.setLevel(logging.WARNING)
     if process_rank() > 0 and logging.getLogger("lnf").getEffectiveLevel() < logging.WARNING:
         logging.getLogger("lnf").setLevel(logging.WARNING)  # lnf.* loggers inherit it
 
