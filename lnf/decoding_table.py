@@ -30,6 +30,17 @@ log = logging.getLogger("lnf.decoding_table")
 DECODINGS = ("auto", "exact", "tabulated")
 
 
+def check_decoding(value: Any, key: str = "decoding") -> None:
+    """Refuse a `key` (``decoding`` of lnf.evaluate, ``evaluation.decoding`` of a training run) not in DECODINGS."""
+    if value not in DECODINGS:
+        raise ValueError(f"{key} must be one of {', '.join(DECODINGS)}, got {value!r}")
+
+
+def _in_chunks(fn: Callable[[Tensor], Tensor], codes: Tensor, chunk: int) -> Tensor:
+    """fn over codes (B, d), `chunk` rows at a time, concatenated along the rows."""
+    return torch.cat([fn(codes[i:i + chunk]) for i in range(0, len(codes), chunk)])
+
+
 class DecodingTable:
     """φ on fixed points, tabulated in q̃ on the box [low, high]^d (see the module docstring).
 
@@ -71,12 +82,12 @@ class DecodingTable:
             value = self.decode_exact(q)
             return value if self.jacobian_exact is None else torch.cat([value[..., None], self.jacobian_exact(q)], -1)
 
-        return torch.cat([one(codes[i:i + self.chunk]) for i in range(0, len(codes), self.chunk)])
+        return _in_chunks(one, codes, self.chunk)
 
     @staticmethod
-    def table_bytes(nodes: int, d: int, n_points: int, field_dim: int) -> int:
-        """Coefficients (float64 while built) of a table of `nodes` per axis on N points × A components."""
-        return int(nodes) ** int(d) * int(n_points) * int(field_dim) * 8
+    def table_bytes(nodes: int, d: int, n_points: int, channels: int) -> int:
+        """Coefficients (float64 while built) of a table of `nodes` per axis on N points × `channels` values each."""
+        return int(nodes) ** int(d) * int(n_points) * int(channels) * 8
 
     @classmethod
     def build(cls, decode: Callable[[Tensor], Tensor], low: Sequence[float], high: Sequence[float], like: Tensor,
@@ -102,15 +113,16 @@ class DecodingTable:
         codes = torch.as_tensor(low_a + (high_a - low_a) * u, dtype=like.dtype, device=like.device)
         spent, n, table = len(codes), int(min_nodes), None
         check = None
-        while n <= int(max_nodes) and cls.table_bytes(n, d, n_points, field_dim) <= int(max_bytes):
+        channels = field_dim * (1 + d) if jacobian is not None else field_dim  # φ, and ∂φ/∂q̃ beside it
+        while n <= int(max_nodes) and cls.table_bytes(n, d, n_points, channels) <= int(max_bytes):
             if budget is not None and spent + n ** d > int(budget):
                 log.info("tabulated decoding: a table of %d^%d nodes costs more decodings than the %d frames it would "
                          "replace; decoding exactly", n, d, budget)
                 return None
             if check is None:
-                check = (codes, torch.cat([decode(codes[i:i + 32]) for i in range(0, len(codes), 32)]))
+                check = (codes, _in_chunks(decode, codes, 32))
                 if jacobian is not None:
-                    check += (torch.cat([jacobian(codes[i:i + 32]) for i in range(0, len(codes), 32)]),)
+                    check += (_in_chunks(jacobian, codes, 32),)
             table = cls(decode, low_a, high_a, like, n, check=check, jacobian=jacobian)
             spent += n ** d
             if table.error <= tol:

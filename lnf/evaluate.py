@@ -19,7 +19,7 @@ from omegaconf import DictConfig, OmegaConf
 from lnf.allocator import keep_freed_memory
 from lnf.config_keys import check_known_keys
 from lnf.dataset import SOURCE_ARRAYS, SPLITS, DatasetConfig, ensure_dataset, load_split, stored_generation, verify_dataset
-from lnf.decoding_table import DECODINGS
+from lnf.decoding_table import check_decoding
 from lnf.evaluation import evaluate_rollouts, evaluation_cost, long_horizon_energy, quadrature_size
 from lnf.model import build, load
 from lnf.quadrature import grid_shape_of, midpoint_grid
@@ -148,8 +148,7 @@ def check_settings(cfg: DictConfig) -> None:
     _integer(cfg, "figures", 0, "how many trajectories get a Figure 3; 0 draws none")
     _integer(cfg, "max_reduction_points", 1, "evaluation points that ρ̃ uses", "all of them")
     _integer(cfg, "threads", 1, "torch CPU threads", "torch's default")
-    if cfg.get("decoding", "auto") not in DECODINGS:
-        raise ValueError(f"decoding must be one of {', '.join(DECODINGS)}, got {cfg.get('decoding')!r}")
+    check_decoding(cfg.get("decoding", "auto"))
     kind = OmegaConf.select(cfg, "grid.kind", default="stored")
     if kind not in GRID_KINDS:
         raise ValueError(f"grid.kind must be 'stored', 'uniform' or 'random', got {kind!r}")

@@ -18,7 +18,7 @@ import torch
 from torch import Tensor
 
 from lnf import metrics as M
-from lnf.decoding_table import DECODINGS, DecodingTable, TabulatedField, code_box
+from lnf.decoding_table import DecodingTable, TabulatedField, check_decoding, code_box
 from lnf.integrators import Integrator, get_integrator
 from lnf.reduced_model import ReducedModel
 from lnf.quadrature import Quadrature, QuadratureRule
@@ -114,10 +114,6 @@ def divergence_metrics(steps: np.ndarray, dt: float, t0: float = 0.0, suffix: st
                     " …" if len(which) > 10 else "")
     return {f"diverged_count{suffix}": float(count), f"diverged_fraction{suffix}": count / max(len(steps), 1),
             f"first_divergence_step{suffix}": float(first), f"first_divergence_time{suffix}": when}
-
-
-def _chunked(fn, x: Tensor, chunk: int) -> Tensor:
-    return torch.cat([fn(x[i:i + chunk]) for i in range(0, x.shape[0], chunk)], dim=0)
 
 
 # Memory bounds of an evaluation (see :func:`evaluate_rollouts`): the true fields of a block of frames in float64
@@ -272,23 +268,31 @@ def _progress(enabled: bool, total: int, description: str, unit: str = "frames")
         yield lambda k: bar.advance(task, k)
 
 
+def _may_tabulate(model: ReducedModel, decoding: str) -> bool:
+    """Whether `decoding` lets evaluation try a table of φ for this model (``auto``: latent dimension ≤ 2)."""
+    check_decoding(decoding)
+    return decoding == "tabulated" or (decoding == "auto" and model.latent_dim <= 2)
+
+
+def _table_box(model: ReducedModel, codes: Tensor, *more: Tensor) -> tuple[np.ndarray, np.ndarray]:
+    """The box of a table of φ: the finite `codes` (…, d), the training codes' range where the model records one,
+    and any `more` codes (see :func:`lnf.decoding_table.code_box`)."""
+    ranges = [torch.stack([model.code_low, model.code_high])] if hasattr(model, "code_low") else []
+    return code_box(codes, *ranges, *more)
+
+
 def frame_decoder(model: ReducedModel, points: Tensor, decoding: str, codes: Tensor, field_dim: int,
                   frames: int) -> tuple[Callable[[Tensor], Tensor], dict[str, float]]:
     """The decoder of frames on `points` (N, dim_B) that :func:`evaluate_rollouts` uses, codes (B, d) → (B, N, A),
     and the metrics that say which it is (see its `decoding`). `codes` (…, d) are the rollout's (their finite rows and
     the training codes' range, where the model records one, make the table's box); `frames` is how many frames it
     will decode twice (predicted and projected), the most a table may cost."""
-    if decoding not in DECODINGS:
-        raise ValueError(f"decoding must be one of {', '.join(DECODINGS)}, got {decoding!r}")
-
     def exact(q: Tensor) -> Tensor:
         return model.decode(q, points)
 
-    d = model.latent_dim
-    if decoding == "exact" or model.state_is_field or (decoding == "auto" and d > 2):
+    if not _may_tabulate(model, decoding) or model.state_is_field:
         return exact, {"decoding_tabulated": 0.0}
-    ranges = [torch.stack([model.code_low, model.code_high])] if hasattr(model, "code_low") else []
-    low, high = code_box(codes, *ranges)
+    low, high = _table_box(model, codes)
     table = DecodingTable.build(exact, low, high, model.reference_tensor(), len(points), field_dim,
                                 budget=frames if decoding == "auto" else None)
     if table is None:
@@ -311,23 +315,18 @@ def frame_reducer(model: ReducedModel, points: Tensor, decoding: str, codes: Ten
     def exact(values: Tensor) -> Tensor:
         return model.reduce(points, values)
 
-    if decoding == "exact" or not model.reduces_through_field or (decoding == "auto" and model.latent_dim > 2):
+    if not _may_tabulate(model, decoding) or not model.reduces_through_field:
         return exact, {"reduction_tabulated": 0.0}
-    field = model.field
-    ranges = [torch.stack([model.code_low, model.code_high])] if hasattr(model, "code_low") else []
     starts = getattr(model, "starts", None)
-    low, high = code_box(codes, *ranges, *([starts] if starts is not None else []))
-
-    def jacobian(q: Tensor) -> Tensor:
-        return field.jet(q, points, order=1).J
+    low, high = _table_box(model, codes, *([starts] if starts is not None else []))
 
     def exact_jet(q: Tensor) -> tuple[Tensor, Tensor]:
-        jet = field.jet(q, points, order=1)
+        jet = model.field.jet(q, points, order=1)
         return jet.value, jet.J
 
     # the K steps of every frame: a table that costs fewer jets than they do
     table = DecodingTable.build(lambda q: model.decode(q, points), low, high, model.reference_tensor(), len(points),
-                                field_dim, jacobian=jacobian,
+                                field_dim, jacobian=lambda q: exact_jet(q)[1],
                                 budget=frames * getattr(model, "reduction_steps", 1) if decoding == "auto" else None)
     if table is None:
         return exact, {"reduction_tabulated": 0.0}

@@ -11,7 +11,7 @@ import lightning.pytorch as pl
 import numpy as np
 import torch
 
-from lnf.decoding_table import DECODINGS
+from lnf.decoding_table import check_decoding
 from lnf.evaluation import RolloutEvaluation, evaluate_rollouts, long_horizon_energy, reduction_subset
 from lnf.integrators import Integrator, get_integrator
 from lnf.quadrature import grid_shape_of, midpoint_grid
@@ -141,8 +141,7 @@ class RolloutEvaluationCallback(pl.Callback):
         self.long_trajectories = _count("long_trajectories", long_trajectories, minimum=1)
         self.long_dt = _positive("long_dt", long_dt)
         self.figures = _count("figures", figures)
-        if decoding not in DECODINGS:
-            raise ValueError(f"evaluation.decoding must be one of {', '.join(DECODINGS)}, got {decoding!r}")
+        check_decoding(decoding, "evaluation.decoding")
         self.decoding = decoding
         self.max_reduction_points = None if max_reduction_points is None else \
             _count("max_reduction_points", max_reduction_points, minimum=1)
