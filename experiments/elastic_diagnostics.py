@@ -105,7 +105,7 @@ def oracle(runs: int = 16, horizon: float = 2.5, seed: int = 0, degree: int = 3,
         d2U = np.array([0, 0, 2, 6 * x]) @ coef
         u = (Ux / w).reshape(1, -1, 2)
         du = dU / w
-        force = -scene.mesh.internal_force(u, scene.lam, scene.mu).reshape(-1)  # ∂(strain energy)/∂u
+        force = -scene.body.internal_force(u).reshape(-1)  # ∂(strain energy)/∂u
         dV = force @ du + scene.gravity * (scene.nodal_mass * du.reshape(-1, 2)[:, 1]).sum()
         mass, dmass = dU @ dU, 2 * dU @ d2U
         return np.array([xdot, -(0.5 * dmass * xdot**2 + dV) / mass])
@@ -159,7 +159,7 @@ def checkpoint(path: Path, trajectory: int = 0) -> None:
     for i in range(0, train_times, 3):
         print(f"  {0.05 * i:5.2f}  {T[i]:8.5f} {kinetic[i]:8.5f}  {V[i] - V[0]:8.5f}  {potential[i] - potential[0]:8.5f}")
     # velocity gradients on the model's quadrature points
-    quad = model.quadrature_rule.build(scene.bounds)
+    quad = model.quadrature_rule.build_for(scene)
     qpts = quad.points.to(q)
     jet = model.field.jet(q, qpts, order=1, spatial=True)
     ours = torch.einsum("bnaki,bi->bnak", jet.GJ, qdot).detach().numpy()
@@ -207,7 +207,7 @@ def rayleigh_ritz(model, low: float, high: float, modes: int = 12) -> dict[str, 
 
     scene = model.scene
     u_g, mode, K = scene.modal_reference()
-    nodes = torch.as_tensor(scene.mesh.nodes)
+    nodes = torch.as_tensor(scene.body.nodes)
     q0 = _equilibrium_code(model.lagrangian_dynamics(), low, high)
     with torch.no_grad():
         t = model.field.jet(q0, nodes, order=1).J[0, ..., 0].numpy().reshape(-1)
@@ -220,7 +220,7 @@ def rayleigh_ritz(model, low: float, high: float, modes: int = 12) -> dict[str, 
     k = min(modes, len(free) - 2)
     values, vectors = spla.eigsh(K[free][:, free].tocsc(), k=k, M=sp.diags(m2[free]).tocsc(), sigma=0, which="LM")
     low_modes = float(((vectors.T @ (m2[free] * e[free])) ** 2 * values).sum() / energy)
-    columns = np.divmod(np.arange(scene.n_nodes), scene.mesh.ny + 1)[0] * scene.mesh.hx
+    columns = scene.body.nodes[:, 0]  # X₁ of each node
     share = np.bincount(np.repeat(columns < 0.2 * scene.length, 2), weights=e * (K @ e), minlength=2)[1] / energy
     return {"period of the FEM's first mode [s]": 2 * np.pi / np.sqrt(phi @ (K @ phi) / ((m2 * phi) @ phi)),
             "period of the learned tangent under the FEM's K_t [s]": 2 * np.pi / np.sqrt(t @ (K @ t) / ((m2 * t) @ t)),
@@ -239,7 +239,7 @@ def embedding_pullback(model, points, fields, states, train_times: int, dt: floa
     from scipy.interpolate import CubicSpline
 
     scene = model.scene
-    nodes = torch.as_tensor(scene.mesh.nodes)
+    nodes = torch.as_tensor(scene.body.nodes)
     with torch.no_grad():
         codes = torch.stack([model.reduce(points, f[:train_times]) for f in fields])  # (n, T, 1)
     low, high = float(codes.min()), float(codes.max())

@@ -108,6 +108,20 @@ PENDULUM_METRICS = (
     ("epochs run (of the budget)", "epochs_run|max_epochs"),
 )
 
+# a scene's default run, in the scene's own energy unit (E_scale)
+SCENE_METRICS = (
+    ("`field_rel_l2/all/median` (the whole 5 s)", "field_rel_l2/all/median"),
+    ("`field_rel_l2/in_horizon/median` · `/max`", "field_rel_l2/in_horizon/median|field_rel_l2/in_horizon/max"),
+    ("`field_rel_l2/extrapolation/median` (after the training horizon)", "field_rel_l2/extrapolation/median"),
+    ("`projection_rel_l2/all/median` (the embedding's own floor)", "projection_rel_l2/all/median"),
+    ("`energy_rel_err/max` (E_scale units)", "energy_rel_err/max"),
+    ("`energy_drift_long/max` (1 000 steps)", "energy_drift_long/max"),
+    ("`vpt/median` [s]", "vpt/median"),
+    ("`rollout_seconds_per_trajectory` · with decoding", "rollout_seconds_per_trajectory|fields_seconds_per_trajectory"),
+    ("training [s] · whole run [s]", "train_seconds|total_seconds"),
+    ("epochs run (of the budget)", "epochs_run|max_epochs"),
+)
+
 SPECS: dict[str, Spec] = {
     **{f"pareto-{s}": _study("pareto", s, "pareto") for s in SCENES},
     **{f"stability-{s}": _study("stability", s) for s in SCENES},
@@ -118,6 +132,7 @@ SPECS: dict[str, Spec] = {
     "cost_scaling-pendulum": _study("cost_scaling", "pendulum"),
     "roofline-pendulum": _study("roofline", "pendulum"),
     "pendulum_default": Spec("metrics", "python -m lnf.train +experiment=pendulum", metrics=PENDULUM_METRICS),
+    "soft_body_default": Spec("metrics", "python -m lnf.train +experiment=soft_body", metrics=SCENE_METRICS),
     "pendulum_lr1e-3": Spec("metrics", "python -m lnf.train +experiment=pendulum optimizer.lr=1e-3",
                             metrics=PENDULUM_METRICS),
     "evaluate_readme": Spec("metrics", "python -m lnf.evaluate ckpt_path=<the pendulum_lr1e-3 run>/checkpoints/last.ckpt "

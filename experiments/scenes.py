@@ -18,9 +18,12 @@ The measurements, and what each asks of the scene (``lnf.scenes.Scene``):
 - ``speedup``: where ``Scene.expensive_reference`` (the full-order reference is itself a costly discretisation):
   the largest step of the reference (if its ``simulate`` takes a ``time_step``: 1 … 1.8 × the scene's own
   ``time_step``) and of our rollout that meet --target in the training horizon, and the speed-up of our rollout
-  over the reference, timed back to back (``energy.png``, ``tip.png``).
+  over the reference, timed back to back, without and with decoding every stored frame on the evaluation points
+  (``energy.png``, ``tip.png``).
 - ``loads``: where ``Scene.has_controls``: the test loads and one load not seen in training (--unseen-load, or
   each load parameter beyond the training trajectories' range by half its width) (``tip_unseen_load.png``).
+- ``shape``: where the body and its displacement are 3-D: the deformed body at four times, ours against the
+  reference (``shape.png``).
 - ``decay``: where the scene is not conservative (``Scene.is_conservative`` false) and has reference energies:
   the free decay of the test initial states, without their loads (``decay.png``).
 
@@ -355,6 +358,16 @@ def speedup(ctx: Context) -> dict[str, Any]:
     if hasattr(model, "set_tabulation"):
         model.set_tabulation(tabulation)
     rom_seconds = timings["tabulated" if tabulation is not None else "exact"]
+    # with decoding: the rollout, then every stored frame decoded (exactly) on the evaluation points
+    stride = max(1, int(round(float(times[1] - times[0]) / rom_best["dt"])))
+    fine = torch.as_tensor(split.fine_points, dtype=pts.dtype)
+
+    def roll_and_decode() -> Any:
+        codes = roll(steps).q[:, ::stride]  # (B, T', d) at the stored times
+        with torch.no_grad():
+            return model.decode(codes.reshape(-1, codes.shape[-1]), fine)
+
+    decoded_seconds, _ = timed(roll_and_decode)
     fom_step = fom_best["time_step"] if fom_best else reference_steps(scene)[0]
     fom_seconds, _ = timed(lambda: _simulate(scene, states0, times[in_h], fom_step))
     result.update(fom=fom, rom=rom, fom_time_step=fom_step,
@@ -363,6 +376,8 @@ def speedup(ctx: Context) -> dict[str, Any]:
                   rom_seconds_exact=timings["exact"], speedup_exact=fom_seconds / timings["exact"],
                   dynamics="tabulated" if tabulation is not None else "lagrangian",
                   fom_seconds=fom_seconds, speedup=fom_seconds / rom_seconds, trajectories=len(states0),
+                  rom_seconds_with_decoding=decoded_seconds, speedup_with_decoding=fom_seconds / decoded_seconds,
+                  decoding_points=int(len(fine)),
                   horizon_s=float(times[in_h][-1]), fom_state_size=int(states0.shape[-1]))
     if tabulation is not None:
         result["table"] = {k: v for k, v in model.dynamics().info.items() if not isinstance(v, list)}
@@ -452,6 +467,50 @@ def decay(ctx: Context) -> dict[str, Any]:
                            "largest_energy_rise_per_sample_over_scale": float(np.max(rise))}}
 
 
+def shape(ctx: Context) -> dict[str, Any]:
+    """The deformed body in 3-D, ours against the reference, at four times of the first test trajectory
+    (``shape.png``: the evaluation points moved to X + u, coloured by the displacement's size, the reference's
+    beside ours, two times before the training horizon and two after)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    ev, split = ctx.base, ctx.split
+    times, horizon = ev.times, float(split.times[split.train_times])
+    picks = np.unique(np.linspace(1, len(times) - 1, 4).round().astype(int))
+    X = np.asarray(ev.points, dtype=np.float64)
+    fields = {"full-order reference": ev.true_fields[0], "ours": ev.pred_fields[0]}
+    scale = float(np.nanmax(np.linalg.norm(ev.true_fields[0], axis=-1)))
+    lo, hi = (X + np.nan_to_num(ev.true_fields[0]).min(0)).min(0), (X + np.nan_to_num(ev.true_fields[0]).max(0)).max(0)
+    fig = plt.figure(figsize=(3.1 * len(picks), 5.4), layout="constrained")
+    for row, (label, u) in enumerate(fields.items()):
+        for col, k in enumerate(picks):
+            ax = fig.add_subplot(2, len(picks), row * len(picks) + col + 1, projection="3d")
+            Y = X + u[k]
+            art = ax.scatter(Y[:, 0], Y[:, 1], Y[:, 2], c=np.linalg.norm(u[k], axis=-1), s=3, cmap="viridis",
+                             vmin=0.0, vmax=scale, depthshade=False)
+            ax.set(xlim=(lo[0], hi[0]), ylim=(lo[1], hi[1]), zlim=(lo[2], hi[2]), xlabel="x₁ [m]", ylabel="x₂ [m]",
+                   zlabel="x₃ [m]")
+            ax.set_box_aspect(hi - lo)
+            ax.view_init(elev=18, azim=-60)
+            ax.tick_params(labelsize=6, pad=0)
+            ax.locator_params(axis="y", nbins=2)
+            ax.locator_params(axis="z", nbins=3)
+            side = "before" if times[k] < horizon else "after"
+            ax.set_title(f"{label}\nt = {times[k]:.2f} s ({side} the horizon)", fontsize=8)
+    fig.colorbar(art, ax=fig.axes, shrink=0.6, label="displacement ‖u‖ [m]")
+    fig.suptitle(f"test trajectory 0: the deformed body (points X + u), dt = {times[1] - times[0]:g} s", fontsize=9)
+    save_figure(fig, ctx.out / "shape.png")
+    return {"shape_figure": "shape.png", "shape_times_s": [float(times[k]) for k in picks]}
+
+
+def _why_not_shape(scene: Any) -> Optional[str]:
+    if scene.body_dim != 3 or scene.field_dim != 3:
+        return "its body is not 3-D with a 3-D displacement field (the deformed-shape view is a 3-D one)"
+    return None
+
+
 # ---------------------------------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class Measurement:
@@ -499,6 +558,7 @@ MEASUREMENTS: dict[str, Measurement] = {
     "speedup": Measurement(speedup, _why_not_speedup),
     "loads": Measurement(loads, _why_not_loads),
     "decay": Measurement(decay, _why_not_decay),
+    "shape": Measurement(shape, _why_not_shape),
 }
 
 

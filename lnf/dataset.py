@@ -58,6 +58,7 @@ from typing import Any, Iterator, Mapping, Optional
 import h5py
 import numpy as np
 
+from lnf.progress import progress_bar
 from lnf.quadrature import midpoint_grid
 from lnf.tempfiles import writer_is_gone
 
@@ -441,7 +442,9 @@ def _read_verified(f: h5py.File, path: Path, key: str) -> np.ndarray:
 # generation
 # ---------------------------------------------------------------------------------------------------
 def _grid(scene: Any, resolution: int) -> np.ndarray:
-    """Midpoint grid (N, dim_B) float32 on the scene's body."""
+    """The scene's observation points (N, dim_B) float32 at `resolution` (by default its box's midpoint grid)."""
+    if hasattr(scene, "observation_points"):
+        return np.asarray(scene.observation_points(resolution), dtype=np.float32)
     return midpoint_grid(resolution, scene.bounds).cpu().numpy().astype(np.float32)
 
 
@@ -469,11 +472,28 @@ def _write_array(group: h5py.Group, name: str, data: np.ndarray) -> h5py.Dataset
     return ds
 
 
+SIMULATION_CHUNK = 8  # trajectories per simulate() call of an expensive reference (a step of its progress bar)
+
+
+def _simulate(scene: Any, initial: np.ndarray, times: np.ndarray, split: str) -> np.ndarray:
+    """scene.simulate(initial, times) (n, T, S), in chunks of SIMULATION_CHUNK trajectories under a progress bar
+    where ``scene.expensive_reference``."""
+    if not getattr(scene, "expensive_reference", False) or len(initial) <= SIMULATION_CHUNK:
+        return np.asarray(scene.simulate(initial, times), dtype=np.float64)
+    parts = []
+    with progress_bar(True, len(initial), f"simulating the {split} split ({scene.name})", "trajectories") as advance:
+        for i in range(0, len(initial), SIMULATION_CHUNK):
+            parts.append(np.asarray(scene.simulate(initial[i:i + SIMULATION_CHUNK], times), dtype=np.float64))
+            advance(len(parts[-1]))
+    return np.concatenate(parts)
+
+
 def _write_split(group: h5py.Group, scene: Any, initial: np.ndarray, masks: np.ndarray, times: np.ndarray,
                  fine: np.ndarray, coarse: np.ndarray) -> None:
     """Simulate `initial` (n, S) over `times` and write one split, trajectory by trajectory, hashing each
-    (n, T, N, A) field array as it is written."""
-    states = np.asarray(scene.simulate(initial, times), dtype=np.float64)
+    (n, T, N, A) field array as it is written. A scene whose reference is expensive (an FEM model) is simulated a
+    few trajectories at a time, under a progress bar."""
+    states = _simulate(scene, initial, times, group.name.strip("/"))
     n, T = len(initial), len(times)
     if states.ndim != 3 or states.shape[:2] != (n, T):
         raise DatasetError(f"scene {scene.name}: simulate() returned shape {states.shape}, expected ({n}, {T}, S)")

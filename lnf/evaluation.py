@@ -6,12 +6,11 @@ the true fields, with the projected reference q̃_ref(t) = ρ̃(q(t)) and with t
 """
 from __future__ import annotations
 
-import contextlib
 import inspect
 import logging
 import time
 from dataclasses import dataclass, field
-from typing import Callable, Iterator, Optional
+from typing import Callable, Optional
 
 import numpy as np
 import torch
@@ -20,6 +19,7 @@ from torch import Tensor
 from lnf import metrics as M
 from lnf.decoding_table import DecodingTable, TabulatedField, check_decoding, code_box
 from lnf.integrators import Integrator, get_integrator
+from lnf.progress import progress_bar
 from lnf.reduced_model import ReducedModel
 from lnf.quadrature import Quadrature, QuadratureRule
 
@@ -143,7 +143,7 @@ def frame_block(n_points: int, field_dim: int, snapshot_chunk: int = 32,
 def quadrature_size(model: ReducedModel, quadrature: "Quadrature | QuadratureRule | None" = None) -> int:
     """Points of the quadrature the reduced dynamics (and the reduced energies) sum over."""
     rule = quadrature if quadrature is not None else model.quadrature_rule
-    quad = rule if isinstance(rule, Quadrature) else rule.build(model.scene.bounds)
+    quad = rule if isinstance(rule, Quadrature) else rule.build_for(model.scene)
     return int(quad.points.shape[0])
 
 
@@ -251,21 +251,6 @@ def _valid_prediction_time(err: np.ndarray, ref: np.ndarray, weights: np.ndarray
     horizon = times[-1] + (times[-1] - times[-2] if len(times) > 1 else 0.0)
     first = np.where(bad.any(-1), bad.argmax(-1), -1)
     return np.where(first >= 0, times[np.clip(first, 0, None)], horizon)
-
-
-@contextlib.contextmanager
-def _progress(enabled: bool, total: int, description: str, unit: str = "frames") -> Iterator[Callable[[int], None]]:
-    """A rich progress bar over `total` `unit`s (``advance(k)``), or a no-op when not `enabled`."""
-    if not enabled:
-        yield lambda k: None
-        return
-    from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn,
-                               TimeRemainingColumn)
-
-    with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TextColumn(unit),
-                  TimeElapsedColumn(), TextColumn("left"), TimeRemainingColumn()) as bar:
-        task = bar.add_task(description, total=total)
-        yield lambda k: bar.advance(task, k)
 
 
 def _may_tabulate(model: ReducedModel, decoding: str) -> bool:
@@ -455,7 +440,7 @@ def evaluate_rollouts(
     decode, decoding_info = frame_decoder(model, pts, decoding, flat_q, field_dim, frames)
     decode_seconds = time.perf_counter() - tick
     reduce_frames, reduction_info = frame_reducer(model, pts_r, decoding, flat_q, field_dim, frames)
-    with _progress(progress, frames, f"decoding the {label}") as advance:
+    with progress_bar(progress, frames, f"decoding the {label}") as advance:
         for k0 in range(0, frames, block):
             k1 = min(k0 + block, frames)
             if stored:
@@ -577,7 +562,7 @@ def long_horizon_energy(
     q0 = model.reduce(pts, torch.as_tensor(q_true, dtype=p.dtype, device=p.device))
     v0 = model.project_velocity(q0, pts, torch.as_tensor(v_true, dtype=p.dtype, device=p.device))
     start = time.perf_counter()
-    with _progress(progress, int(steps), f"long-horizon check ({len(q0)} trajectories)", "steps") as advance:
+    with progress_bar(progress, int(steps), f"long-horizon check ({len(q0)} trajectories)", "steps") as advance:
         traj = model.rollout(q0, v0, dt=dt, steps=steps, integrator=integrator, quadrature=quadrature,
                              record_every=record_every, on_divergence="mark",
                              controls=trajectory_controls(scene, states0, q0) if controls is None else

@@ -23,6 +23,17 @@ SPLIT_CELLS = {"quad": (2, [(0, 1, 2), (0, 2, 3)]),
                "hexahedron": (3, [(0, 1, 3, 4), (1, 2, 3, 6), (1, 4, 5, 6), (3, 4, 6, 7), (1, 3, 4, 6)])}
 
 
+def read_meshio(path: "str | os.PathLike[str]") -> Any:
+    """meshio.read(path), with any failure a :class:`DatasetError` naming the file (meshio raises many kinds,
+    and exits the interpreter for a file it cannot parse)."""
+    import meshio
+
+    try:
+        return meshio.read(path)
+    except (Exception, SystemExit) as exc:  # noqa: BLE001 - see the docstring
+        raise DatasetError(f"{path}: meshio cannot read it ({type(exc).__name__}: {exc})") from exc
+
+
 def _simplex_measures(coords: np.ndarray) -> np.ndarray:
     """Measures (length, area, volume) of simplices with vertices coords (m, k+1, dim), k = 1, 2, 3."""
     edges = coords[:, 1:] - coords[:, :1]  # (m, k, dim)
@@ -120,10 +131,7 @@ def read_mesh_series(source: "str | os.PathLike | Sequence[str | os.PathLike]", 
             raise DatasetError(f"read_mesh_series: {len(files)} mesh files need times= (one time [s] per file)")
         ref_points = ref_cells = None
         for p in files:
-            try:
-                mesh = meshio.read(p)
-            except Exception as exc:  # noqa: BLE001 - meshio raises many kinds; name the file
-                raise DatasetError(f"{p}: meshio cannot read it ({type(exc).__name__}: {exc})") from exc
+            mesh = read_meshio(p)
             if ref_points is None:
                 ref_points, ref_cells = np.asarray(mesh.points), mesh.cells
             elif mesh.points.shape != ref_points.shape or not np.allclose(mesh.points, ref_points):

@@ -331,7 +331,7 @@ class LagrangianNeuralField(ReducedModel):
             vel = reconstruction_loss(tangent, velocities, density)
             total = total + self.velocity_weight * vel
             out["velocity"] = vel.mean()
-        if self.energy_weight > 0 and potential is not None:
+        if self.energy_weight > 0 and energy_factor > 0 and potential is not None:  # (0 · a NaN would be NaN)
             reduced = self.lagrangian_dynamics().potential_energy(codes)
             gap = (reduced - potential.to(reduced)) / self.scene.energy_scale
             energy = torch.nn.functional.huber_loss(gap, torch.zeros_like(gap), reduction="none", delta=0.1)

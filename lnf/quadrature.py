@@ -7,7 +7,7 @@ polynomials of degree 2n−1 per axis exactly; uniform midpoint grids converge o
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Any, Sequence
 
 import numpy as np
 import torch
@@ -111,6 +111,10 @@ class QuadratureRule:
     def build(self, bounds: Bounds) -> Quadrature:  # pragma: no cover - interface
         raise NotImplementedError
 
+    def build_for(self, scene: Any) -> Quadrature:
+        """The rule on `scene`'s body (by default, on its bounds; a rule can ask the scene for more)."""
+        return self.build(scene.bounds)
+
     def describe(self) -> str:  # pragma: no cover - interface
         raise NotImplementedError
 
@@ -153,6 +157,24 @@ class GivenPoints(QuadratureRule):
 
     def describe(self) -> str:
         return f"given_points(n={len(self.weights)})"
+
+
+class MeshElements(QuadratureRule):
+    """The quadrature of the scene's own mesh (``scene.element_quadrature()``: its elements' points and weights),
+    for a body that does not fill its box."""
+
+    def build(self, bounds: Bounds) -> Quadrature:
+        raise ValueError("quadrature=mesh takes its points from the scene's mesh: build it with build_for(scene)")
+
+    def build_for(self, scene: Any) -> Quadrature:
+        if not (hasattr(scene, "provides") and scene.provides("element_quadrature")):
+            raise ValueError(f"quadrature=mesh: scene {getattr(scene, 'name', scene)!r} has no mesh of its own "
+                             "(it defines no element_quadrature()); choose quadrature=gauss_legendre")
+        quad = scene.element_quadrature()
+        return Quadrature(torch.as_tensor(quad.points), torch.as_tensor(quad.weights))
+
+    def describe(self) -> str:
+        return "mesh_elements"
 
 
 class StoredPoints(QuadratureRule):

@@ -105,7 +105,7 @@ class ReducedModel(nn.Module):
 
         `dtype` other than the model's evaluates a copy of φ in that precision (e.g. float64 for tables)."""
         rule = quadrature if quadrature is not None else self.quadrature_rule
-        quad = rule if isinstance(rule, Quadrature) else rule.build(self.scene.bounds)
+        quad = rule if isinstance(rule, Quadrature) else rule.build_for(self.scene)
         p = self.reference_tensor()
         field = self.field
         if dtype is not None and dtype != p.dtype:

@@ -79,7 +79,7 @@ def check_resumed_scene(ckpt: dict[str, Any], path: Path, scene_spec: dict[str, 
 def check_settings(cfg: DictConfig, module: LNFModule) -> None:
     """Settings that would otherwise fail only after training: build what the test phase needs now."""
     try:
-        module.model.quadrature_rule.build(module.model.scene.bounds)
+        module.model.quadrature_rule.build_for(module.model.scene)
     except (TypeError, ValueError) as err:
         raise ValueError(f"quadrature={OmegaConf.to_container(cfg.quadrature)}: {err}") from err
     max_epochs = cfg.trainer.get("max_epochs")

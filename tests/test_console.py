@@ -96,3 +96,12 @@ def test_font_subsetting_of_pdf_figures_is_not_logged(monkeypatch):
     quiet_console()
     assert fonts.level == logging.DEBUG
     fonts.setLevel(logging.NOTSET)
+
+
+def test_scikit_fems_assembly_log_is_not_shown(monkeypatch):
+    """scikit-fem logs every basis it builds and every form it assembles at INFO (dozens of lines before an elastic
+    scene's data are generated)."""
+    fem = logging.getLogger("skfem")
+    monkeypatch.setattr(fem, "level", logging.NOTSET)
+    quiet_console()
+    assert not logging.getLogger("skfem.assembly").isEnabledFor(logging.INFO)

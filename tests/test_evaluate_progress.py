@@ -2,6 +2,7 @@
 metrics equal those of the unchunked evaluation (all fields at once, lnf.metrics on the full arrays) it replaced."""
 from __future__ import annotations
 
+import contextlib
 import numpy as np
 import pytest
 import torch
@@ -159,14 +160,14 @@ def test_the_long_horizon_check_counts_its_steps_on_a_progress_bar(model, case, 
     states, _, points, _, _ = case
     seen = []
 
-    @evaluation.contextlib.contextmanager
+    @contextlib.contextmanager
     def recording(enabled, total, description, unit="frames"):
         seen.append((enabled, total, unit))
         done = []
         yield done.append
         seen.append(sum(done))
 
-    monkeypatch.setattr(evaluation, "_progress", recording)
+    monkeypatch.setattr(evaluation, "progress_bar", recording)
     shown = evaluation.long_horizon_energy(model, states[:, 0], points, 0.05, 30, integrator="rk4", progress=True)
     assert seen == [(True, 30, "steps"), 30]
     quiet = evaluation.long_horizon_energy(model, states[:, 0], points, 0.05, 30, integrator="rk4")

@@ -41,8 +41,20 @@ def _study(experiment, name="stability"):
     return studylib.Study(name=name, scene=experiment, mode="smoke", out=ROOT / "outputs" / "unused", threads=1)
 
 
-def test_the_built_in_experiments_are_the_five_of_the_old_tables():
-    assert {p.stem for p in (ROOT / "conf" / "experiment").glob("*.yaml")} == set(EXPERIMENTS)
+def test_the_built_in_experiments_are_the_five_of_the_old_tables_and_the_soft_body():
+    assert {p.stem for p in (ROOT / "conf" / "experiment").glob("*.yaml")} == set(EXPERIMENTS) | {"soft_body"}
+
+
+def test_the_soft_body_declares_what_the_studies_ask():
+    """A 3-D finite-element body: no nodal full-order baseline (2-D bodies only), an expensive reference, and high
+    energy releases scaled to its own training range."""
+    from lnf.scenes import SoftBody
+
+    scene = SoftBody(box=(0.5, 0.15, 0.1), cells=(4, 2, 1))
+    assert scene.baselines() == {"full_order": False, "latent_mlp": True, "pod": True}
+    assert scene.expensive_reference and scene.capabilities()["release_at_rest"]
+    cases = scene.stability_cases()
+    assert cases.train_edge == 0.05 and cases.levels[0] == 0.05 and cases.levels[-1] > 2 * 0.05
 
 
 @pytest.mark.parametrize("experiment", EXPERIMENTS)

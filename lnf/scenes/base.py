@@ -272,6 +272,19 @@ class Scene:
         clamped, for a field that meets the clamp exactly (:class:`lnf.boundary.ClampedField`)."""
         raise ValueError(f"scene {self.name!r} has no clamped boundary; set model.clamp=false")
 
+    def observation_points(self, resolution: int) -> np.ndarray:
+        """Points (N, dim_B) of a generated dataset at `resolution` (``data.fine_resolution`` and
+        ``data.coarse_resolution``). Default: the midpoint grid of `resolution` cells per axis of ``bounds``; a
+        body that does not fill its box, or whose box is far from a cube, gives its own points inside it."""
+        from lnf.quadrature import midpoint_grid
+
+        return midpoint_grid(resolution, self.bounds).cpu().numpy()
+
+    def element_quadrature(self) -> Quadrature:
+        """The quadrature (points, weights) of the scene's own discretisation of its body, such as the elements of its
+        mesh: what ``quadrature=mesh`` integrates the pulled-back Lagrangian with."""
+        raise self._missing("element_quadrature", "quadrature=mesh needs (the quadrature of the scene's own mesh)")
+
     # -- the full-order model (optional) -------------------------------------------------------
     def sample_initial_states(self, n: int, rng: np.random.Generator) -> np.ndarray:
         """`n` full-order initial states (n, S) drawn with `rng`: the trajectories of a generated dataset."""
@@ -326,7 +339,8 @@ class Scene:
 
 
 OPTIONAL_PARTS = ("simulate", "sample_initial_states", "fields", "true_energy_parts", "kinetic_correction",
-                  "generalized_force", "controls", "clamp_factor", "field_gradients", "released_at_rest")
+                  "generalized_force", "controls", "clamp_factor", "field_gradients", "released_at_rest",
+                  "observation_points", "element_quadrature")
 
 
 def importable_name(cls: type) -> str:

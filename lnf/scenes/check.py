@@ -15,7 +15,7 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
-from lnf.quadrature import gauss_legendre_rule
+from lnf.quadrature import Quadrature, gauss_legendre_rule
 from lnf.scenes.base import Scene
 
 
@@ -139,6 +139,10 @@ def check_scene(scene: Scene, raise_on_problem: bool = True, n_trajectories: int
     if not _run(report, "required attributes (field_dim, bounds, energy_scale, params)", _core(scene)):
         return _finish(report, raise_on_problem)
     rule = gauss_legendre_rule(quadrature_order, scene.bounds)
+    rule_text = f"a {quadrature_order}-point-per-axis Gauss–Legendre rule"
+    if scene.provides("element_quadrature"):  # a body on a mesh: its elements' own rule (exact for its own fields)
+        own = scene.element_quadrature()
+        rule, rule_text = Quadrature(own.points.to(rule.points), own.weights.to(rule.weights)), "its mesh's element rule"
     _run(report, "density ω0 (shape, broadcasting, > 0)", _density(scene, rule.points))
     _run(report, "potential V on a quadrature rule (shape, batch)", _potential(scene, rule))
     caps = scene.capabilities()
@@ -197,7 +201,7 @@ def check_scene(scene: Scene, raise_on_problem: bool = True, n_trajectories: int
             _, pot = scene.true_energy_parts(states[:, :: max(1, n_times // 4)])
             gap = float(np.max(np.abs(pulled - np.asarray(pot).reshape(-1)))) / scene.energy_scale
             if gap > potential_tolerance:
-                return (f"V of the scene's own fields on a {quadrature_order}-point-per-axis Gauss–Legendre rule differs "
+                return (f"V of the scene's own fields on {rule_text} differs "
                         f"from true_energy_parts' potential by {gap:.3g} × energy_scale (tolerance {potential_tolerance}): "
                         f"potential() and true_energy_parts() must describe the same energy, in the same units "
                         f"(or the field is not resolved by the rule: raise quadrature_order)")

@@ -10,8 +10,9 @@ Optional non-conservative forces (the paper's future work), per unit reference a
 mass-proportional Rayleigh damping −α ρ u̇ and a vertical actuation load b(X, t) = A sin(2π f t) (X₁/L) e₂
 with per-trajectory amplitude A and frequency f (the scene's `controls`).
 
-Ground truth: the Q1 finite-element model of :mod:`lnf.scenes.fem` with lumped mass and velocity Verlet
-(symplectic; with damping, a conformal splitting), at a time step below the CFL limit. Initial states
+Ground truth: the Q1 finite-element model of :class:`lnf.fem.body.ElasticBody` (scikit-fem's assembly, 2 × 2
+Gauss points, lumped mass) with velocity Verlet (symplectic; with damping, a conformal splitting) at a time step
+below the CFL limit, or with the implicit midpoint rule (`integrator`) at any step. Initial states
 (`release`), with δ ~ U(deflection_range) and a tip speed ~ U(tip_speed_range):
 
 - ``"shape"``: the Euler–Bernoulli tip-load shape w(X₁) = δ (X₁/L)² (3 − X₁/L)/2, u₁ = −(X₂ − H/2) w', with an
@@ -36,9 +37,11 @@ import scipy.sparse.linalg as spla
 import torch
 from torch import Tensor
 
+from lnf.fem.body import ElasticBody, box_mesh
+from lnf.fem.materials import MATERIALS, HyperelasticMaterial, get_material
+from lnf.fem.time_stepping import implicit_midpoint, verlet
 from lnf.quadrature import Quadrature
 from lnf.scenes.base import DiscretePotential, GeneralizedForce, Scene, StabilityCases, check_positive, check_range
-from lnf.scenes.fem import StructuredQ1Mesh, lame
 
 log = logging.getLogger("lnf.scenes.elastic")
 
@@ -47,51 +50,49 @@ ELASTIC_CASES = StabilityCases((0.15, 0.2, 0.25, 0.3, 0.4), "tip deflection of t
                                "training range |δ| ≤ 0.15 m")
 
 
-def svk_torch(G: Tensor, lam: float, mu: float) -> tuple[Tensor, Tensor]:
-    """(W, P) of St Venant–Kirchhoff at F = I + G for displacement gradients G (…, 2, 2)."""
-    F = G + torch.eye(2, dtype=G.dtype, device=G.device)
-    E = 0.5 * (F.transpose(-1, -2) @ F - torch.eye(2, dtype=G.dtype, device=G.device))
-    trace = E[..., 0, 0] + E[..., 1, 1]
-    W = mu * (E * E).sum((-1, -2)) + 0.5 * lam * trace**2
-    S = 2 * mu * E + lam * trace[..., None, None] * torch.eye(2, dtype=G.dtype, device=G.device)
-    return W, F @ S
-
-
 class ElasticPotential(DiscretePotential):
-    """V = Σ_j w_j [W(I + G_j) + ρ g q_{j,2}] on quadrature points; q (B, N, 2), G = ∇_X q (B, N, 2, 2)."""
+    """V = Σ_j w_j [W(I + G_j) + ρ g q_{j,v}] on quadrature points, v the vertical (last) axis; q (B, N, d),
+    G = ∇_X q (B, N, d, d), W the material's stored energy (:mod:`lnf.fem.materials`)."""
 
     needs_gradient = True
 
-    def __init__(self, weights: Tensor, lam: float, mu: float, rho_g: float) -> None:
-        self.weights, self.lam, self.mu, self.rho_g = weights, lam, mu, rho_g
+    def __init__(self, weights: Tensor, material: HyperelasticMaterial, rho_g: float) -> None:
+        self.weights, self.material, self.rho_g = weights, material, rho_g
+
+    @staticmethod
+    def _deformation(G: Tensor) -> Tensor:
+        return G + torch.eye(G.shape[-1], dtype=G.dtype, device=G.device)
 
     def __call__(self, q: Tensor, G: Optional[Tensor] = None) -> Tensor:
-        W, _ = svk_torch(G, self.lam, self.mu)
+        W = self.material.energy_density(self._deformation(G))
         w = self.weights.to(q)
-        return torch.einsum("n,bn->b", w, W + self.rho_g * q[..., 1])
+        return torch.einsum("n,bn->b", w, W + self.rho_g * q[..., -1])
 
     def gradient(self, q: Tensor, G: Optional[Tensor] = None) -> tuple[Tensor, Tensor]:
-        _, P = svk_torch(G, self.lam, self.mu)
+        P = self.material.first_piola(self._deformation(G))
         w = self.weights.to(q)
         dq = torch.zeros_like(q)
-        dq[..., 1] = self.rho_g * w
+        dq[..., -1] = self.rho_g * w
         return dq, w[:, None, None] * P
 
 
 class CantileverLoad(GeneralizedForce):
-    """f = −α ρ u̇ + A sin(2π f t) (X₁/L) e₂ at quadrature points; controls (B, 2) = (A, f)."""
+    """f = −α ρ u̇ + A sin(2π f t) s(X) ê at quadrature points, s(X) = ((X₁ − X₁,min)/L)^p the load's profile and
+    ê its direction (d,); controls (B, 2) = (A, f)."""
 
-    def __init__(self, weights: Tensor, points: Tensor, length: float, rho: float, damping: float) -> None:
+    def __init__(self, weights: Tensor, profile: Tensor, direction: Sequence[float], rho: float,
+                 damping: float) -> None:
         super().__init__(weights)
-        self.profile = points[:, 0] / length  # (N,)
+        self.profile = profile  # (N,)
+        self.direction = torch.as_tensor(list(direction), dtype=torch.float64)  # (d,)
         self.rho, self.damping = rho, damping
 
     def field_force(self, t: float, q: Tensor, v: Tensor, controls: Optional[Tensor]) -> Tensor:
         force = -self.damping * self.rho * v
         if controls is not None:
             amplitude = controls[:, 0] * torch.sin(2 * math.pi * controls[:, 1] * t)  # (B,)
-            force = force.clone()
-            force[..., 1] = force[..., 1] + amplitude[:, None] * self.profile.to(v)[None, :]
+            shape = self.profile.to(v)[:, None] * self.direction.to(v)[None, :]  # (N, d)
+            force = force + amplitude[:, None, None] * shape[None]
         return force
 
 
@@ -101,8 +102,11 @@ class ElasticCantilever(Scene):
     Args:
         length, height: L, H of the body B = [0, L] × [0, H].
         density: ρ; young, poisson: E, ν (plane strain); gravity: g (acts along −X₂).
+        material: the stored energy, ``svk`` (St Venant–Kirchhoff) or ``neo_hookean`` (compressible).
         mesh: (nx, ny) Q1 elements of the full-order model.
-        time_step: full-order Verlet step [s]; null = `cfl_fraction` × the CFL estimate.
+        integrator: ``verlet`` (explicit, below the CFL limit) or ``implicit_midpoint`` (Newton with the exact
+            tangent stiffness; any step).
+        time_step: full-order step [s]; null = `cfl_fraction` × the CFL estimate.
         deflection_range, tip_speed_range: initial tip deflection δ [m] and tip speed [m/s] of the release.
         release: "shape" (Euler–Bernoulli shape) or "modal" (the FEM's equilibrium under a modal load), see above.
         damping: α [1/s] of the mass-proportional Rayleigh damping −α ρ u̇.
@@ -116,7 +120,8 @@ class ElasticCantilever(Scene):
 
     def __init__(self, length: float = 1.0, height: float = 0.4, density: float = 1.0, young: float = 200.0,
                  poisson: float = 0.3, gravity: float = 1.0, mesh: Sequence[int] = (40, 16),
-                 time_step: Optional[float] = None, cfl_fraction: float = 0.5,
+                 time_step: Optional[float] = None, cfl_fraction: float = 0.5, material: str = "svk",
+                 integrator: str = "verlet",
                  deflection_range: Sequence[float] = (-0.15, 0.15), tip_speed_range: Sequence[float] = (-0.5, 0.5),
                  damping: float = 0.0, load_amplitude_range: Sequence[float] = (0.0, 0.0),
                  load_frequency_range: Sequence[float] = (0.5, 1.0), release: str = "shape") -> None:
@@ -130,6 +135,10 @@ class ElasticCantilever(Scene):
             raise ValueError(f"scene.mesh must be two integers (nx, ny) ≥ 1, got {list(mesh)!r}")
         if release not in ("shape", "modal"):
             raise ValueError(f"scene.release must be 'shape' or 'modal', got {release!r}")
+        if material not in MATERIALS:
+            raise ValueError(f"scene.material must be one of {sorted(MATERIALS)}, got {material!r}")
+        if integrator not in ("verlet", "implicit_midpoint"):
+            raise ValueError(f"scene.integrator must be 'verlet' or 'implicit_midpoint', got {integrator!r}")
         check_range(deflection_range=deflection_range, tip_speed_range=tip_speed_range,
                     load_amplitude_range=load_amplitude_range, load_frequency_range=load_frequency_range)
         self.length, self.height, self.rho = float(length), float(height), float(density)
@@ -143,16 +152,29 @@ class ElasticCantilever(Scene):
         self.load_frequency_range = [float(v) for v in load_frequency_range]
         self.loaded = any(v != 0 for v in self.load_amplitude_range)  # actuation present
         self.release = str(release)
-        self.bounds = [[0.0, self.length], [0.0, self.height]]
-        self.lam, self.mu = lame(self.young, self.poisson)
-        self.mesh = StructuredQ1Mesh(self.length, self.height, *self.mesh_shape)
-        cfl = self.mesh.stable_time_step(self.lam, self.mu, self.rho)
-        self.time_step = float(time_step) if time_step is not None else self.cfl_fraction * cfl
+        self.material_name, self.integrator = str(material), str(integrator)
+        self.material = get_material(self.material_name, self.young, self.poisson)
+        self.lam, self.mu = self.material.lam, self.material.mu
+        mesh = box_mesh([self.length, self.height], self.mesh_shape, "quad")
+        self._set_body(ElasticBody(mesh, self.material, self.rho, clamped=mesh.p[0] == 0.0, intorder=2), time_step)
+        self.load_direction, self.load_power = [0.0, 1.0], 1.0  # b = A sin(2π f t) (X₁/L) e₂
+
+    def _set_body(self, body: ElasticBody, time_step: Optional[float]) -> None:
+        """Take the full-order body: its box, clamp, tip (the nodes at the largest X₁) and stable time step."""
+        self.body, self.dim = body, body.dim
+        self.field_dim = body.dim
+        self.bounds = body.bounds
+        self.x_min = self.bounds[0][0]
+        self.length = self.bounds[0][1] - self.bounds[0][0]  # along X₁, from the clamp
+        self.height = self.bounds[-1][1] - self.bounds[-1][0]  # along the vertical X_d
+        self.center = 0.5 * (self.bounds[-1][0] + self.bounds[-1][1])
+        cfl = self.body.stable_time_step()
+        self.time_step = float(time_step) if time_step is not None else float(self.cfl_fraction * cfl)
         if not (np.isfinite(self.time_step) and self.time_step > 0):
             raise ValueError(f"scene.time_step must be a positive number [s], got {time_step!r}")
-        self.nodal_mass = self.rho * self.mesh.nodal_area  # (nn,)
-        self.free_dofs = np.flatnonzero(np.repeat(~self.mesh.clamped, 2))  # unclamped nodal dofs of u.reshape(-1)
-        self._tip = np.flatnonzero(self.mesh.nodes[:, 0] == self.length)
+        self.nodal_mass = self.body.nodal_mass  # (nn,)
+        self.free_dofs = self.body.free_dofs  # unclamped nodal dofs of u.reshape(-1)
+        self._tip = np.flatnonzero(np.isclose(self.body.nodes[:, 0], self.bounds[0][1]))
         self._modal: Optional[tuple[np.ndarray, np.ndarray, sp.csr_matrix]] = None  # (u_g, first mode, K_t at u_g)
         self._energy_scale: Optional[float] = None  # computed on first use (the modal one needs Newton solves)
 
@@ -168,10 +190,10 @@ class ElasticCantilever(Scene):
                 flat = mode.reshape(-1)
                 stiffness = float(flat @ (K @ flat))
                 speed = max(abs(v) for v in self.tip_speed_range)
-                mass = float(np.repeat(self.nodal_mass, 2) @ flat**2)
+                mass = float(np.repeat(self.nodal_mass, self.dim) @ flat**2)
                 scale = 0.5 * delta**2 * stiffness + 0.5 * speed**2 * mass
             else:
-                scale = float(self.mesh.strain_energy(self.beam_shape(np.array([delta])), self.lam, self.mu)[0])
+                scale = float(self.body.strain_energy(self.beam_shape(np.array([delta])))[0])
             self._energy_scale = scale if scale > 0 else self.rho * max(self.gravity, 1.0) * self.length**2 * self.height
         return self._energy_scale
 
@@ -181,14 +203,15 @@ class ElasticCantilever(Scene):
                     time_step=self.time_step, cfl_fraction=self.cfl_fraction,
                     deflection_range=self.deflection_range, tip_speed_range=self.tip_speed_range,
                     damping=self.damping, load_amplitude_range=self.load_amplitude_range,
-                    load_frequency_range=self.load_frequency_range, release=self.release)
+                    load_frequency_range=self.load_frequency_range, release=self.release,
+                    material=self.material_name, integrator=self.integrator)
 
     # -- the Lagrangian ---------------------------------------------------------------------------------
     def density(self, points: Tensor) -> Tensor:
         return torch.full(points.shape[:-1], self.rho, dtype=points.dtype, device=points.device)
 
     def potential(self, quadrature: Quadrature) -> ElasticPotential:
-        return ElasticPotential(quadrature.weights, self.lam, self.mu, self.rho * self.gravity)
+        return ElasticPotential(quadrature.weights, self.material, self.rho * self.gravity)
 
     @property
     def forced(self) -> bool:
@@ -202,11 +225,12 @@ class ElasticCantilever(Scene):
     def generalized_force(self, quadrature: Quadrature) -> Optional[CantileverLoad]:
         if not self.forced:
             return None
-        return CantileverLoad(quadrature.weights, quadrature.points, self.length, self.rho, self.damping)
+        profile = ((quadrature.points[:, 0] - self.x_min) / self.length).clamp_min(0) ** self.load_power
+        return CantileverLoad(quadrature.weights, profile, self.load_direction, self.rho, self.damping)
 
     def clamp_factor(self, points: Tensor) -> tuple[Tensor, Tensor]:
-        """s = X₁/L (zero on the clamp X₁ = 0) and ∇s = (1/L, 0), for points (…, N, 2)."""
-        s = points[..., 0] / self.length
+        """s = (X₁ − X₁,min)/L (zero on the clamp) and ∇s = (1/L, 0, …), for points (…, N, d)."""
+        s = (points[..., 0] - self.x_min) / self.length
         ds = torch.zeros_like(points)
         ds[..., 0] = 1.0 / self.length
         return s, ds
@@ -217,7 +241,7 @@ class ElasticCantilever(Scene):
     # -- the full-order model ---------------------------------------------------------------------------
     @property
     def n_nodes(self) -> int:
-        return self.mesh.n_nodes
+        return self.body.n_nodes
 
     def release_shape(self, tip: np.ndarray) -> np.ndarray:
         """Nodal displacements (n, nn, 2) of the release with tip deflections `tip` (n,) (see `release`)."""
@@ -227,72 +251,86 @@ class ElasticCantilever(Scene):
 
     def static_equilibrium(self, nodal_load: Optional[np.ndarray] = None, start: Optional[np.ndarray] = None,
                            tol: float = 1e-10, max_iter: int = 30) -> np.ndarray:
-        """Nodal displacements (nn, 2) at rest under gravity and extra nodal forces (nn, 2) [N/m] (Newton)."""
-        u = np.zeros((self.n_nodes, 2)) if start is None else np.array(start, dtype=np.float64)
-        load = np.zeros((self.n_nodes, 2)) if nodal_load is None else np.array(nodal_load, dtype=np.float64)
-        load[:, 1] -= self.nodal_mass * self.gravity
+        """Nodal displacements (nn, d) at rest under gravity and extra nodal forces (nn, d) [N] (Newton)."""
+        u = np.zeros((self.n_nodes, self.dim)) if start is None else np.array(start, dtype=np.float64)
+        load = np.zeros((self.n_nodes, self.dim)) if nodal_load is None else np.array(nodal_load, dtype=np.float64)
+        load[:, -1] -= self.nodal_mass * self.gravity
         free = self.free_dofs
         scale = max(np.abs(load).sum(), 1e-300)
+        def residual_at(u: np.ndarray) -> np.ndarray:
+            return (self.body.internal_force(u[None])[0] + load).reshape(-1)[free]
+
+        residual = residual_at(u)
         for _ in range(max_iter):
-            residual = (self.mesh.internal_force(u[None], self.lam, self.mu)[0] + load).reshape(-1)[free]
             if np.abs(residual).sum() <= tol * scale:
                 return u
-            K = self.mesh.tangent_stiffness(u, self.lam, self.mu)[free][:, free]
+            K = self.body.tangent_stiffness(u)[free][:, free]
             step = spla.spsolve(K.tocsc(), residual)
-            u = u.reshape(-1).copy()
-            u[free] += step
-            u = u.reshape(self.n_nodes, 2)
+            for _ in range(20):  # a Newton step that inverts an element (W undefined there) is halved
+                trial = u.reshape(-1).copy()
+                trial[free] += step
+                trial = trial.reshape(self.n_nodes, self.dim)
+                try:
+                    residual = residual_at(trial)
+                    break
+                except FloatingPointError:
+                    step = 0.5 * step
+            else:
+                break
+            u = trial
         raise RuntimeError(f"elastic static equilibrium (load {np.abs(load).sum():.4g} N/m) did not converge in "
                            f"{max_iter} Newton steps; reduce scene.deflection_range")
 
     def modal_reference(self) -> tuple[np.ndarray, np.ndarray, sp.csr_matrix]:
-        """(equilibrium under gravity u_g, first bending mode about it scaled to a unit tip deflection), (nn, 2)
-        each, and the tangent stiffness K_t there (2 nn × 2 nn), computed once."""
+        """(equilibrium under gravity u_g, first mode about it scaled to a unit vertical tip deflection), (nn, d)
+        each, and the tangent stiffness K_t there (d nn × d nn), computed once."""
         if self._modal is None:
             u_g = self.static_equilibrium()
             free = self.free_dofs
-            K_g = self.mesh.tangent_stiffness(u_g, self.lam, self.mu)
-            mass = np.repeat(self.nodal_mass, 2)[free]
+            K_g = self.body.tangent_stiffness(u_g)
+            mass = np.repeat(self.nodal_mass, self.dim)[free]
             _, vectors = spla.eigsh(K_g[free][:, free].tocsc(), k=1, M=sp.diags(mass).tocsc(), sigma=0, which="LM")
-            mode = np.zeros(2 * self.n_nodes)
+            mode = np.zeros(self.dim * self.n_nodes)
             mode[free] = vectors[:, 0]
-            mode = mode.reshape(self.n_nodes, 2)
-            self._modal = (u_g, mode / float(mode[self._tip, 1].mean()), K_g)
+            mode = mode.reshape(self.n_nodes, self.dim)
+            self._modal = (u_g, mode / float(mode[self._tip, -1].mean()), K_g)
         return self._modal
 
     def modal_release(self, tip: np.ndarray) -> np.ndarray:
-        """Equilibria (n, nn, 2) under gravity and the modal load K_t δ φ₁ (the inertial load of the first mode
+        """Equilibria (n, nn, d) under gravity and the modal load K_t δ φ₁ (the inertial load of the first mode
         at a turning point, whose linear response is δ φ₁), for tip deflections δ = `tip` (n,)."""
         u_g, mode, K = self.modal_reference()
-        unit_load = -(K @ mode.reshape(-1)).reshape(self.n_nodes, 2)  # K_t φ₁ = ω₁² M φ₁ (a force on the body)
+        unit_load = -(K @ mode.reshape(-1)).reshape(self.n_nodes, self.dim)  # K_t φ₁ = ω₁² M φ₁ (a force on the body)
         return np.stack([self.static_equilibrium(-float(t) * unit_load, start=u_g) for t in np.asarray(tip).reshape(-1)])
 
     def release_velocity(self, speed: np.ndarray) -> np.ndarray:
-        """Initial nodal velocities (n, nn, 2) with tip speeds `speed` (n,), in the release's shape."""
+        """Initial nodal velocities (n, nn, d) with tip speeds `speed` (n,), in the release's shape."""
         if self.release == "modal":
             _, mode, _ = self.modal_reference()
             return np.asarray(speed, dtype=np.float64)[:, None, None] * mode[None]
         return self.beam_shape(speed)
 
     def beam_shape(self, tip: np.ndarray) -> np.ndarray:
-        """Nodal displacements (n, nn, 2) of the Euler–Bernoulli tip-load shape with tip deflections `tip` (n,)."""
-        s = self.mesh.nodes[:, 0] / self.length
+        """Nodal displacements (n, nn, d) of the Euler–Bernoulli tip-load shape with tip deflections `tip` (n,):
+        u_d = w(X₁), u₁ = −(X_d − X_d,mid) w', the other components 0."""
+        s = (self.body.nodes[:, 0] - self.x_min) / self.length
         w = 0.5 * s**2 * (3 - s)
         dw = 1.5 * s * (2 - s) / self.length
-        shape = np.stack([-(self.mesh.nodes[:, 1] - 0.5 * self.height) * dw, w], -1)  # (nn, 2)
+        shape = np.zeros((self.n_nodes, self.dim))
+        shape[:, 0], shape[:, -1] = -(self.body.nodes[:, -1] - self.center) * dw, w
         return np.asarray(tip, dtype=np.float64)[:, None, None] * shape[None]
 
     def pack(self, u: np.ndarray, v: np.ndarray, load: np.ndarray) -> np.ndarray:
-        """Full-order state (…, 4 nn + 2) from u, v (…, nn, 2) and load (…, 2) = (A, f)."""
+        """Full-order state (…, 2 d nn + 2) from u, v (…, nn, d) and load (…, 2) = (A, f)."""
         return np.concatenate([u.reshape(*u.shape[:-2], -1), v.reshape(*v.shape[:-2], -1), load], -1)
 
     def unpack(self, states: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        nn = self.n_nodes
-        if states.shape[-1] != 4 * nn + 2:
-            raise ValueError(f"elastic states must have 4·{nn} + 2 = {4 * nn + 2} entries (mesh {self.mesh_shape}), "
+        nn, d = self.n_nodes, self.dim
+        if states.shape[-1] != 2 * d * nn + 2:
+            raise ValueError(f"{self.name} states must have 2·{d}·{nn} + 2 = {2 * d * nn + 2} entries ({nn} nodes), "
                              f"got {states.shape[-1]}")
-        u = states[..., :2 * nn].reshape(*states.shape[:-1], nn, 2)
-        v = states[..., 2 * nn:4 * nn].reshape(*states.shape[:-1], nn, 2)
+        u = states[..., :d * nn].reshape(*states.shape[:-1], nn, d)
+        v = states[..., d * nn:2 * d * nn].reshape(*states.shape[:-1], nn, d)
         return u, v, states[..., -2:]
 
     def sample_initial_states(self, n: int, rng: np.random.Generator) -> np.ndarray:
@@ -315,82 +353,86 @@ class ElasticCantilever(Scene):
         return ELASTIC_CASES
 
     def external_force(self, t: float, load: np.ndarray) -> np.ndarray:
-        """Nodal actuation forces (n, nn, 2) at time t for load parameters (n, 2) (lumped)."""
+        """Nodal actuation forces (n, nn, d) at time t for load parameters (n, 2) (lumped)."""
         amplitude = load[:, 0] * np.sin(2 * np.pi * load[:, 1] * t)
-        f = np.zeros((len(load), self.n_nodes, 2))
-        f[..., 1] = amplitude[:, None] * (self.mesh.nodal_area * self.mesh.nodes[:, 0] / self.length)[None]
-        return f
+        profile = np.clip((self.body.nodes[:, 0] - self.x_min) / self.length, 0, None) ** self.load_power
+        shape = (self.body.volume_per_node * profile)[:, None] * np.asarray(self.load_direction)[None, :]
+        return amplitude[:, None, None] * shape[None]
 
-    def acceleration(self, u: np.ndarray, t: float, load: np.ndarray) -> np.ndarray:
-        """Nodal accelerations (n, nn, 2) of internal, gravity and actuation forces (no damping); 0 at the clamp."""
-        force = self.mesh.internal_force(u, self.lam, self.mu)
-        force[..., 1] -= self.nodal_mass * self.gravity
+    def applied_force(self, u: np.ndarray, t: float, load: np.ndarray) -> np.ndarray:
+        """Nodal forces (n, nn, d) [N] of the internal stress, gravity and actuation at time t (no damping)."""
+        force = self.body.internal_force(u)
+        force[..., -1] -= self.nodal_mass * self.gravity
         if self.loaded:
             force = force + self.external_force(t, load)
-        acc = force / self.nodal_mass[None, :, None]
-        acc[:, self.mesh.clamped] = 0.0
+        return force
+
+    def acceleration(self, u: np.ndarray, t: float, load: np.ndarray) -> np.ndarray:
+        """Nodal accelerations (n, nn, d) of internal, gravity and actuation forces (no damping); 0 at the clamp."""
+        acc = self.applied_force(u, t, load) / self.nodal_mass[None, :, None]
+        acc[:, self.body.clamped] = 0.0
         return acc
 
     def simulate(self, initial_states: np.ndarray, times: np.ndarray, time_step: Optional[float] = None
                  ) -> np.ndarray:
-        """Velocity Verlet at ≤ `time_step` (default the scene's), sampled at `times` (uniform, from times[0])."""
+        """The FEM body from `initial_states` sampled at `times` (uniform, from times[0]), by the scene's
+        `integrator` at ≤ `time_step` (default the scene's)."""
         times = np.asarray(times, dtype=np.float64)
         u, v, load = (np.array(x, dtype=np.float64) for x in self.unpack(np.asarray(initial_states)))
-        out = np.empty((len(u), len(times), 4 * self.n_nodes + 2))
-        out[:, 0] = self.pack(u, v, load)
-        if len(times) == 1:
-            return out
-        sample = float(times[1] - times[0])
-        substeps = max(1, math.ceil(sample / (time_step or self.time_step) - 1e-9))
-        h = sample / substeps
-        decay = math.exp(-0.5 * self.damping * h)
-        t = float(times[0])
-        acc = self.acceleration(u, t, load)
-        for k in range(1, len(times)):
-            for _ in range(substeps):
-                v = decay * v + 0.5 * h * acc
-                u = u + h * v
-                t += h
-                acc = self.acceleration(u, t, load)
-                v = decay * (v + 0.5 * h * acc)
-            if not np.isfinite(u).all():
-                raise RuntimeError(f"elastic full-order model diverged at t = {t:.4g} s with time step {h:.3g} s; "
-                                   "set scene.time_step smaller (or scene.cfl_fraction)")
-            out[:, k] = self.pack(u, v, load)
-        return out
+
+        def force(u: np.ndarray, t: float, index: np.ndarray) -> np.ndarray:
+            return self.applied_force(u, t, load[index])
+
+        step = time_step or self.time_step
+        try:
+            if self.integrator == "verlet":
+                us, vs = verlet(self.body, force, u, v, times, step, self.damping)
+            else:
+                us, vs, _ = implicit_midpoint(self.body, force, u, v, times, step, self.damping)
+        except FloatingPointError as err:
+            raise RuntimeError(f"elastic full-order model: {err} (scene.time_step, scene.cfl_fraction or "
+                               "scene.integrator)") from err
+        return self.pack(us, vs, np.repeat(load[:, None], len(times), 1))
+
+    def _inside(self, points: np.ndarray) -> np.ndarray:
+        """Points (N, d) clipped to the box (for a box-shaped mesh, its cells then hold every one of them)."""
+        x = np.asarray(points, dtype=np.float64)
+        lo, hi = np.asarray(self.bounds).T
+        return np.clip(x, lo, hi)
 
     def fields(self, states: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         u, v, _ = self.unpack(np.asarray(states))
-        interp = self.mesh.interpolation(np.asarray(points, dtype=np.float64))  # (N, nn)
+        interp = self.body.interpolation(self._inside(points))  # (N, nn)
         lead, N = u.shape[:-2], len(points)
-        uv = np.concatenate([u, v], -1).reshape(-1, self.n_nodes, 4)  # one product for both fields
-        out = (interp @ uv.transpose(1, 0, 2).reshape(self.n_nodes, -1)).reshape(N, -1, 4).transpose(1, 0, 2)
-        out = out.reshape(*lead, N, 4)
-        return out[..., :2], out[..., 2:]
+        d = self.dim
+        uv = np.concatenate([u, v], -1).reshape(-1, self.n_nodes, 2 * d)  # one product for both fields
+        out = (interp @ uv.transpose(1, 0, 2).reshape(self.n_nodes, -1)).reshape(N, -1, 2 * d).transpose(1, 0, 2)
+        out = out.reshape(*lead, N, 2 * d)
+        return out[..., :d], out[..., d:]
 
     def field_gradients(self, states: np.ndarray, points: np.ndarray) -> np.ndarray:
-        """∇_X u (…, N, 2, 2) [component a, direction j] of the FEM's bilinear displacement at points (N, 2)."""
+        """∇_X u (…, N, d, d) [component a, direction j] of the FEM's displacement at points (N, d)."""
         return self._interpolated_gradients(self.unpack(np.asarray(states))[0], points)
 
     def velocity_gradients(self, states: np.ndarray, points: np.ndarray) -> np.ndarray:
-        """∇_X u̇ (…, N, 2, 2) [component a, direction j] [1/s] of the FEM's bilinear velocity at points (N, 2)."""
+        """∇_X u̇ (…, N, d, d) [component a, direction j] [1/s] of the FEM's velocity at points (N, d)."""
         return self._interpolated_gradients(self.unpack(np.asarray(states))[1], points)
 
     def _interpolated_gradients(self, nodal: np.ndarray, points: np.ndarray) -> np.ndarray:
-        """∇_X of the bilinear interpolant of nodal vectors (…, nn, 2) at points (N, 2) → (…, N, 2, 2)."""
-        lead, N = nodal.shape[:-2], len(points)
-        flat = nodal.reshape(-1, self.n_nodes, 2).transpose(1, 0, 2).reshape(self.n_nodes, -1)  # (nn, B·2)
-        parts = [(D @ flat).reshape(N, -1, 2) for D in self.mesh.interpolation_gradient(np.asarray(points, np.float64))]
-        G = np.stack(parts, -1).transpose(1, 0, 2, 3)  # (B, N, 2a, 2j)
-        return G.reshape(*lead, N, 2, 2)
+        """∇_X of the interpolant of nodal vectors (…, nn, d) at points (N, d) → (…, N, d, d)."""
+        lead, N, d = nodal.shape[:-2], len(points), self.dim
+        flat = nodal.reshape(-1, self.n_nodes, d).transpose(1, 0, 2).reshape(self.n_nodes, -1)  # (nn, B·d)
+        parts = [(D @ flat).reshape(N, -1, d) for D in self.body.interpolation_gradient(self._inside(points))]
+        G = np.stack(parts, -1).transpose(1, 0, 2, 3)  # (B, N, d a, d j)
+        return G.reshape(*lead, N, d, d)
 
     def nodal_potential(self, u: np.ndarray) -> np.ndarray:
-        """The FEM body's potential V [J/m] (B,): strain energy plus gravity, for nodal displacements u (B, nn, 2)."""
-        return self.mesh.strain_energy(u, self.lam, self.mu) + self.gravity * (self.nodal_mass * u[..., 1]).sum(-1)
+        """The FEM body's potential V [J] (B,): strain energy plus gravity, for nodal displacements u (B, nn, d)."""
+        return self.body.strain_energy(u) + self.gravity * (self.nodal_mass * u[..., -1]).sum(-1)
 
     def true_energy_parts(self, states: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         u, v, _ = self.unpack(np.asarray(states))
         lead = u.shape[:-2]
-        u2, v2 = u.reshape(-1, self.n_nodes, 2), v.reshape(-1, self.n_nodes, 2)
+        u2, v2 = u.reshape(-1, self.n_nodes, self.dim), v.reshape(-1, self.n_nodes, self.dim)
         kinetic = 0.5 * np.einsum("n,bnk,bnk->b", self.nodal_mass, v2, v2)
         return kinetic.reshape(lead), self.nodal_potential(u2).reshape(lead)

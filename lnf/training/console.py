@@ -80,9 +80,12 @@ def quiet_console() -> None:
         logger = logging.getLogger(name)
         if not any(isinstance(f, MessageFilter) for f in logger.filters):
             logger.addFilter(MessageFilter(patterns))
-    fonts = logging.getLogger("fontTools")  # matplotlib's PDF backend subsets fonts with it: 40 INFO lines a figure
-    if fonts.level == logging.NOTSET:  # a level the user set is kept
-        fonts.setLevel(logging.WARNING)
+    # matplotlib's PDF backend subsets fonts with fontTools (40 INFO lines a figure); scikit-fem logs every basis
+    # it builds and every form it assembles
+    for name in ("fontTools", "skfem"):
+        chatty = logging.getLogger(name)
+        if chatty.level == logging.NOTSET:  # a level the user set is kept
+            chatty.setLevel(logging.WARNING)
     if process_rank() > 0 and logging.getLogger("lnf").getEffectiveLevel() < logging.WARNING:
         logging.getLogger("lnf").setLevel(logging.WARNING)  # lnf.* loggers inherit it
 

@@ -1,0 +1,358 @@
+"""A hyperelastic body discretised by scikit-fem: any mesh of triangles, quadrilaterals, tetrahedra or hexahedra.
+
+:class:`ElasticBody` holds a scikit-fem mesh with linear (P1 / Q1) vector elements and gives what the rest of lnf
+needs of a finite-element body, for nodal displacements u (B, n_nodes, d):
+
+- the quadrature of its elements (points and weights, for the pulled-back Lagrangian and for evaluation);
+- the lumped (row-sum) mass, the internal force −∂/∂u ∫ W(I + ∇_X u) dX and the strain energy, and the exact
+  tangent stiffness K = ∂²/∂u² ∫ W dX, from the material's stress P(F) and moduli A = ∂P/∂F
+  (:mod:`lnf.fem.materials`) at the elements' quadrature points. scikit-fem gives the elements, their maps,
+  quadrature and basis gradients; the sums over elements are sparse products with its discrete gradient G
+  (f = −Gᵀ(w P), K = Gᵀ(w A)G), batched over trajectories and 2–4× faster than its own assembly of the weak
+  forms, which :meth:`ElasticBody.assembled_internal_force` and :meth:`ElasticBody.assembled_tangent_stiffness`
+  keep as the check (equal to rounding, ``tests/test_fem.py``);
+- interpolation of nodal vectors, and of their gradients, to any points inside the mesh.
+
+Degrees of freedom are node-major: u.reshape(-1)[d·n + k] is component k of node n. The clamped nodes' rows are
+the caller's to drop (``free_dofs``).
+"""
+from __future__ import annotations
+
+import contextlib
+from pathlib import Path
+from typing import Any, Optional, Sequence, Union
+
+import numpy as np
+import scipy.sparse as sp
+import skfem
+import torch
+from skfem.helpers import ddot, grad
+
+from lnf.fem.materials import HyperelasticMaterial, determinant
+
+# scikit-fem mesh type → the linear element on it
+ELEMENTS: dict[type, type] = {
+    skfem.MeshTri1: skfem.ElementTriP1,
+    skfem.MeshQuad1: skfem.ElementQuad1,
+    skfem.MeshTet1: skfem.ElementTetP1,
+    skfem.MeshHex1: skfem.ElementHex1,
+}
+
+
+@contextlib.contextmanager
+def _one_torch_thread() -> Any:
+    """Evaluate the material on one torch thread: its tensors are many 2 × 2 or 3 × 3 matrices, whose batched
+    products cost more in thread hand-offs than they gain (on 2 busy cores, 55 ms against 0.7 ms for 10 240)."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(threads)
+
+
+@skfem.LinearForm
+def _stress_form(v: Any, w: Any) -> Any:
+    """∫ P : ∇v dX, P the first Piola–Kirchhoff stress at the quadrature points."""
+    return ddot(w["P"], grad(v))
+
+
+@skfem.BilinearForm
+def _tangent_form(u: Any, v: Any, w: Any) -> Any:
+    """∫ ∇v : A : ∇u dX, A = ∂P/∂F at the quadrature points."""
+    return np.einsum("ijkl...,kl...,ij...->...", w["A"], grad(u), grad(v), optimize=True)
+
+
+@skfem.LinearForm
+def _volume_form(v: Any, w: Any) -> Any:
+    return v
+
+
+class ElasticBody:
+    """A hyperelastic body of mass density ρ [kg/m³] on a scikit-fem mesh (units: m, kg, s, Pa).
+
+    Args:
+        mesh: a scikit-fem mesh of linear cells (MeshTri1, MeshQuad1, MeshTet1, MeshHex1).
+        material: the stored energy W(F).
+        density: ρ (per unit area and depth in 2-D).
+        clamped: boolean mask (n_nodes,) of the nodes held at u = 0, or None.
+        intorder: the quadrature's polynomial order (default 1 for simplices, where ∇u is constant per cell, and 2
+            for quadrilaterals and hexahedra: 2 Gauss points per axis).
+    """
+
+    def __init__(self, mesh: skfem.Mesh, material: HyperelasticMaterial, density: float,
+                 clamped: Optional[np.ndarray] = None, intorder: Optional[int] = None) -> None:
+        element = next((e for kind, e in ELEMENTS.items() if isinstance(mesh, kind)), None)
+        if element is None:
+            raise ValueError(f"ElasticBody needs a mesh of linear triangles, quadrilaterals, tetrahedra or hexahedra, "
+                             f"got a {type(mesh).__name__}")
+        if not (np.isfinite(density) and density > 0):
+            raise ValueError(f"density must be a finite number > 0 [kg/m³], got {density!r}")
+        self.mesh, self.material, self.density = mesh, material, float(density)
+        self.dim = mesh.dim()
+        if intorder is None:
+            intorder = 1 if isinstance(mesh, (skfem.MeshTri1, skfem.MeshTet1)) else 2
+        self.basis = skfem.Basis(mesh, skfem.ElementVector(element()), intorder=int(intorder))
+        self.scalar_basis = skfem.Basis(mesh, element(), quadrature=self.basis.quadrature)
+        self.nodes = np.ascontiguousarray(mesh.p.T, dtype=np.float64)  # (nn, d)
+        self._dof = self.basis.nodal_dofs.T.copy()  # (nn, d): scikit-fem's dof of component k of node n
+        if self.basis.N != self.dim * self.n_nodes:
+            raise ValueError(f"ElasticBody: {self.basis.N} degrees of freedom for {self.n_nodes} nodes in {self.dim}-D "
+                             "(a mesh with unused nodes?)")
+        # scikit-fem's dofs → node-major order (d·n + k); identity for its vector elements, kept general
+        self._order = self._dof.reshape(-1)
+        self.volume_per_node = skfem.asm(_volume_form, self.scalar_basis)  # ∫ N_a dX (nn,)
+        self.nodal_mass = self.density * self.volume_per_node
+        mask = np.zeros(self.n_nodes, bool) if clamped is None else np.asarray(clamped, bool)
+        if mask.shape != (self.n_nodes,):
+            raise ValueError(f"clamped must be a mask of shape ({self.n_nodes},), got {mask.shape}")
+        self.clamped = mask
+        self._gradient_operator: Optional[sp.csr_matrix] = None
+        self._probes: dict[tuple[bytes, bool], Any] = {}  # the last interpolation matrices, by their points
+        self.free_dofs = np.flatnonzero(np.repeat(~mask, self.dim))
+
+    # ------------------------------------------------------------------ geometry
+    @property
+    def n_nodes(self) -> int:
+        return self.nodes.shape[0]
+
+    @property
+    def quadrature_points(self) -> np.ndarray:
+        """The elements' quadrature points X_q (Q, d)."""
+        x = self.basis.mapping.F(self.basis.X)  # (d, nel, nq)
+        return np.ascontiguousarray(x.reshape(self.dim, -1).T)
+
+    @property
+    def quadrature_weights(self) -> np.ndarray:
+        """Their weights (Q,) [m^d]: Σ w = the body's volume."""
+        return np.ascontiguousarray(self.basis.dx.reshape(-1))
+
+    @property
+    def bounds(self) -> list[list[float]]:
+        return [[float(lo), float(hi)] for lo, hi in zip(self.nodes.min(0), self.nodes.max(0))]
+
+    # ------------------------------------------------------------------ mechanics
+    def _skfem_vector(self, u: np.ndarray) -> np.ndarray:
+        x = np.empty(self.basis.N)
+        x[self._order] = np.asarray(u, dtype=np.float64).reshape(-1)
+        return x
+
+    def deformation_gradients(self, u: np.ndarray) -> np.ndarray:
+        """F = I + ∇_X u at every quadrature point, (d, d, nel, nq) as scikit-fem lays it out, for u (nn, d)."""
+        G = self.basis.interpolate(self._skfem_vector(u)).grad  # (d, d, nel, nq)
+        return G + np.eye(self.dim)[:, :, None, None]
+
+    def _material(self, F: np.ndarray, what: str) -> np.ndarray:
+        """W, P or A of the material at F (d, d, nel, nq), in scikit-fem's layout (components first)."""
+        d = self.dim
+        Ft = torch.from_numpy(np.ascontiguousarray(np.moveaxis(F, (0, 1), (-2, -1))))  # (nel, nq, d, d)
+        with torch.no_grad(), _one_torch_thread():
+            if what == "W":
+                return self.material.energy_density(Ft).numpy()
+            if what == "P":
+                return np.moveaxis(self.material.first_piola(Ft).numpy(), (-2, -1), (0, 1))
+        with _one_torch_thread():
+            A = self.material.tangent(Ft).detach().numpy()  # (nel, nq, d, d, d, d)
+        return np.moveaxis(A, (-4, -3, -2, -1), (0, 1, 2, 3)).reshape(d, d, d, d, *F.shape[2:])
+
+    def _check_inverted(self, F: np.ndarray, where: str, components_last: bool = False) -> None:
+        """Raise where det F ≤ 0 and the material needs det F > 0; F (d, d, …) as scikit-fem lays it out, or
+        (…, d, d) with `components_last`."""
+        if not self.material.needs_positive_jacobian:
+            return
+        with _one_torch_thread():
+            Ft = torch.from_numpy(F if components_last else np.ascontiguousarray(np.moveaxis(F, (0, 1), (-2, -1))))
+            J = determinant(Ft).numpy()
+        low = self.material.min_jacobian
+        if not np.all(J >= low) or not np.all(J > 0):
+            bad = int((~((J >= low) & (J > 0))).sum())
+            raise FloatingPointError(f"ElasticBody.{where}: {bad} quadrature points with det F < {low:g} (an element "
+                                     f"crushed or inverted): the displacement is too large for the mesh")
+
+    @property
+    def gradient_operator(self) -> sp.csr_matrix:
+        """The sparse matrix (d·d·nel·nq, d·nn) that maps node-major nodal displacements to ∇_X u at every
+        quadrature point, built once from scikit-fem's basis gradients and element dofs (the discrete gradient
+        that its assembly sums over): Gᵀ(w ⊙ P) is the assembled ∫ P : ∇v dX, for a whole batch at once."""
+        if self._gradient_operator is None:
+            basis, d = self.basis, self.dim
+            nel, nq = basis.nelems, basis.X.shape[-1]
+            grads = np.stack([basis.basis[a][0].grad for a in range(basis.Nbfun)])  # (a, d, d, nel, nq)
+            rows = np.broadcast_to(np.arange(d * d * nel * nq).reshape(1, d, d, nel, nq), grads.shape)
+            inverse = np.empty_like(self._order)
+            inverse[self._order] = np.arange(len(self._order))
+            cols = np.broadcast_to(inverse[basis.element_dofs][:, None, None, :, None], grads.shape)
+            keep = grads != 0
+            self._gradient_operator = sp.csr_matrix((grads[keep], (rows[keep], cols[keep])),
+                                                    shape=(d * d * nel * nq, self.basis.N))
+        return self._gradient_operator
+
+    def _batched_gradients(self, u: np.ndarray) -> np.ndarray:
+        """F = I + ∇_X u (B, nel, nq, d, d) for u (B, nn, d), through :attr:`gradient_operator`."""
+        B, d = u.shape[0], self.dim
+        flat = np.asarray(u, dtype=np.float64).reshape(B, -1).T  # (d·nn, B)
+        G = (self.gradient_operator @ flat).reshape(d, d, *self.basis.dx.shape, B)
+        return np.ascontiguousarray(G.transpose(4, 2, 3, 0, 1)) + np.eye(d)
+
+    def internal_force(self, u: np.ndarray) -> np.ndarray:
+        """f = −∂/∂u ∫ W(I + ∇_X u) dX (B, nn, d) [N] for u (B, nn, d): −Gᵀ(w ⊙ P(F)), the same sum as
+        scikit-fem's assembly of ∫ P : ∇v dX (checked in the tests), for the whole batch in two sparse products."""
+        u = np.asarray(u, dtype=np.float64)
+        B, d = u.shape[0], self.dim
+        F = self._batched_gradients(u)  # (B, nel, nq, d, d)
+        if self.material.needs_positive_jacobian:
+            self._check_inverted(F, "internal_force", components_last=True)
+        with torch.no_grad(), _one_torch_thread():
+            P = self.material.first_piola(torch.from_numpy(F)).numpy()
+        weighted = (P * self.basis.dx[None, :, :, None, None]).transpose(3, 4, 1, 2, 0).reshape(-1, B)
+        return -(self.gradient_operator.T @ weighted).T.reshape(B, self.n_nodes, d)
+
+    def assembled_internal_force(self, u: np.ndarray) -> np.ndarray:
+        """The same force as :meth:`internal_force` for one state u (nn, d), by scikit-fem's own assembly."""
+        F = self.deformation_gradients(u)
+        self._check_inverted(F, "assembled_internal_force")
+        return -skfem.asm(_stress_form, self.basis, P=self._material(F, "P"))[self._order].reshape(self.n_nodes,
+                                                                                                   self.dim)
+
+    def strain_energy(self, u: np.ndarray) -> np.ndarray:
+        """∫ W(I + ∇_X u) dX (B,) [J] for u (B, nn, d)."""
+        F = self._batched_gradients(np.asarray(u, dtype=np.float64))
+        with torch.no_grad(), _one_torch_thread():
+            W = self.material.energy_density(torch.from_numpy(F)).numpy()  # (B, nel, nq)
+        return (W * self.basis.dx[None]).sum((1, 2))
+
+    def tangent_stiffness(self, u: np.ndarray) -> sp.csr_matrix:
+        """K = ∂²/∂u² ∫ W dX (d·nn × d·nn, sparse, node-major) at one state u (nn, d): exact, Gᵀ D G with D the
+        block-diagonal w A = w ∂P/∂F at the quadrature points (the sum scikit-fem's assembly of ∫ ∇v : A : ∇u dX
+        makes, :meth:`assembled_tangent_stiffness`, in one sparse product)."""
+        d = self.dim
+        F = self._batched_gradients(np.asarray(u, dtype=np.float64)[None])[0]  # (nel, nq, d, d)
+        if self.material.needs_positive_jacobian:
+            self._check_inverted(F, "tangent_stiffness", components_last=True)
+        with _one_torch_thread():
+            A = self.material.tangent(torch.from_numpy(F)).detach().numpy()  # (nel, nq, d, d, d, d)
+        nel, nq = self.basis.dx.shape
+        wA = A * self.basis.dx[:, :, None, None, None, None]
+        # row (i, j, e, q) of G ↔ index ((i·d + j)·nel + e)·nq + q; D couples (i, j) and (k, l) at the same (e, q)
+        point = np.arange(nel * nq).reshape(nel, nq)
+        ij = np.arange(d * d).reshape(d, d)
+        rows = (ij[None, None, :, :, None, None] * nel * nq + point[:, :, None, None, None, None])
+        cols = (ij[None, None, None, None, :, :] * nel * nq + point[:, :, None, None, None, None])
+        rows, cols = np.broadcast_to(rows, wA.shape).reshape(-1), np.broadcast_to(cols, wA.shape).reshape(-1)
+        D = sp.csr_matrix((wA.reshape(-1), (rows, cols)), shape=(d * d * nel * nq,) * 2)
+        G = self.gradient_operator
+        K = (G.T @ (D @ G)).tocsr()
+        return (0.5 * (K + K.T)).tocsr()  # symmetric up to rounding; exactly so for the eigen- and linear solvers
+
+    def assembled_tangent_stiffness(self, u: np.ndarray) -> sp.csr_matrix:
+        """The same K as :meth:`tangent_stiffness`, by scikit-fem's own assembly of ∫ ∇v : A : ∇u dX (slower)."""
+        F = self.deformation_gradients(u)
+        self._check_inverted(F, "assembled_tangent_stiffness")
+        K = skfem.asm(_tangent_form, self.basis, A=self._material(F, "A")).tocsr()
+        if np.array_equal(self._order, np.arange(len(self._order))):
+            return K
+        return K[self._order][:, self._order].tocsr()
+
+    # ------------------------------------------------------------------ interpolation
+    def _probe(self, points: np.ndarray, gradient: bool) -> Union[sp.csr_matrix, list[sp.csr_matrix]]:
+        x = np.asarray(points, dtype=np.float64)
+        if x.ndim != 2 or x.shape[1] != self.dim:
+            raise ValueError(f"points must be (N, {self.dim}), got {x.shape}")
+        basis = self.scalar_basis
+        try:
+            cells = self.mesh.element_finder(mapping=basis.mapping)(*x.T)
+        except ValueError as err:
+            raise ValueError(f"points outside the mesh (bounds {self.bounds}): {err}") from err
+        local = basis.mapping.invF(x.T[:, :, None], tind=cells)
+        fields = [basis.elem.gbasis(basis.mapping, local, k, tind=cells)[0] for k in range(basis.Nbfun)]
+        cols = basis.element_dofs[:, cells].reshape(-1)
+        rows = np.tile(np.arange(len(x)), basis.Nbfun)
+        shape = (len(x), basis.N)
+        if not gradient:
+            vals = np.concatenate([f.value.reshape(-1) for f in fields])
+            return sp.csr_matrix((vals, (rows, cols)), shape=shape)
+        return [sp.csr_matrix((np.concatenate([f.grad[j].reshape(-1) for f in fields]), (rows, cols)), shape=shape)
+                for j in range(self.dim)]
+
+    def _cached_probe(self, points: np.ndarray, gradient: bool) -> Any:
+        x = np.ascontiguousarray(points, dtype=np.float64)
+        key = (x.tobytes(), gradient)
+        if key not in self._probes:
+            if len(self._probes) >= 8:  # a few point sets recur (the grids of a run); keep the last ones
+                self._probes.pop(next(iter(self._probes)))
+            self._probes[key] = self._probe(x, gradient)
+        return self._probes[key]
+
+    def interpolation(self, points: np.ndarray) -> sp.csr_matrix:
+        """Sparse (N, nn) interpolation of nodal values to points (N, d) inside the mesh (cached by points)."""
+        return self._cached_probe(points, gradient=False)
+
+    def interpolation_gradient(self, points: np.ndarray) -> list[sp.csr_matrix]:
+        """∂/∂X_j of the interpolant at points (N, d): d sparse (N, nn) matrices (on a cell face: one cell's)."""
+        return self._cached_probe(points, gradient=True)
+
+    def stable_time_step(self) -> float:
+        """CFL estimate h_min / c_p of explicit time stepping (h_min the shortest edge, c_p the dilatational
+        wave speed of the material's small-strain moduli)."""
+        edges = self.mesh.p[:, self.mesh.edges] if self.dim == 3 else self.mesh.p[:, self.mesh.facets]
+        h = float(np.min(np.linalg.norm(edges[:, 1] - edges[:, 0], axis=0)))
+        return h / np.sqrt((self.material.lam + 2 * self.material.mu) / self.density)
+
+
+def box_mesh(lengths: Sequence[float], cells: Sequence[int], kind: str = "quad") -> skfem.Mesh:
+    """A structured mesh of the box [0, L₁] × … (2-D: ``quad`` or ``tri``; 3-D: ``hex`` or ``tet``)."""
+    axes = [np.linspace(0.0, float(L), int(n) + 1) for L, n in zip(lengths, cells)]
+    kinds = {2: {"quad": skfem.MeshQuad1, "tri": skfem.MeshTri1}, 3: {"hex": skfem.MeshHex1, "tet": skfem.MeshTet1}}
+    if len(lengths) != len(cells) or len(axes) not in kinds:
+        raise ValueError(f"box_mesh: lengths and cells must both have 2 or 3 entries, got {list(lengths)}, {list(cells)}")
+    if kind not in kinds[len(axes)]:
+        raise ValueError(f"box_mesh: kind must be one of {sorted(kinds[len(axes)])} in {len(axes)}-D, got {kind!r}")
+    return kinds[len(axes)][kind].init_tensor(*axes)
+
+
+def read_mesh(path: Union[str, Path]) -> tuple[skfem.Mesh, dict[str, np.ndarray]]:
+    """A mesh file that meshio reads, as a scikit-fem mesh of its highest-dimensional linear cells, and its named
+    point sets (boolean node masks, from meshio point sets and from the nodes of its cell sets)."""
+    from lnf.mesh_io import read_meshio
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"mesh file {path}: not found")
+    return from_meshio(read_meshio(path), str(path))
+
+
+MESHIO_CELLS = ("tetra", "hexahedron", "triangle", "quad")
+
+
+def from_meshio(raw: Any, source: str = "mesh") -> tuple[skfem.Mesh, dict[str, np.ndarray]]:
+    """(scikit-fem mesh, named node masks) of a meshio mesh (see :func:`read_mesh`): scikit-fem converts the cells
+    (and reorders a hexahedron's corners); nodes that no cell uses (a mesher's geometry points) are dropped."""
+    import skfem.io.meshio
+
+    types = {b.type for b in raw.cells}
+    if not types & set(MESHIO_CELLS):
+        raise ValueError(f"{source}: no triangles, quadrilaterals, tetrahedra or hexahedra (cells: {sorted(types)}); "
+                         "lnf needs linear cells")
+    try:
+        full = skfem.io.meshio.from_meshio(raw)
+    except Exception as err:
+        raise ValueError(f"{source}: scikit-fem cannot convert it ({type(err).__name__}: {err})") from err
+    if type(full) not in ELEMENTS:
+        raise ValueError(f"{source}: a {type(full).__name__}; lnf needs linear cells {list(MESHIO_CELLS)}")
+    used = np.unique(full.t)
+    renumber = -np.ones(full.p.shape[1], dtype=np.int64)
+    renumber[used] = np.arange(len(used))
+    mesh = type(full)(full.p[:, used].copy(), renumber[full.t].copy())
+    n_raw = len(raw.points)
+    sets: dict[str, np.ndarray] = {}
+    for name, idx in (getattr(raw, "point_sets", None) or {}).items():
+        mask = np.zeros(n_raw, bool)
+        mask[np.asarray(idx, dtype=np.int64)] = True
+        sets[name] = mask[used]
+    for name, per_block in (getattr(raw, "cell_sets", None) or {}).items():
+        mask = np.zeros(n_raw, bool)
+        for block, idx in zip(raw.cells, per_block):
+            if idx is not None and len(idx):
+                mask[np.asarray(block.data)[np.asarray(idx, dtype=np.int64)].reshape(-1)] = True
+        sets.setdefault(name, mask[used])
+    return mesh, sets
