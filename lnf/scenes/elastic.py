@@ -125,14 +125,29 @@ class ElasticCantilever(Scene):
                  deflection_range: Sequence[float] = (-0.15, 0.15), tip_speed_range: Sequence[float] = (-0.5, 0.5),
                  damping: float = 0.0, load_amplitude_range: Sequence[float] = (0.0, 0.0),
                  load_frequency_range: Sequence[float] = (0.5, 1.0), release: str = "shape") -> None:
-        check_positive(length=length, height=height, density=density, young=young, cfl_fraction=cfl_fraction)
+        check_positive(length=length, height=height)
+        if len(mesh) != 2 or any(int(n) != n or n < 1 for n in mesh):
+            raise ValueError(f"scene.mesh must be two integers (nx, ny) ≥ 1, got {list(mesh)!r}")
+        self.length, self.height = float(length), float(height)
+        self.mesh_shape = [int(n) for n in mesh]
+        self._set_physics(density, young, poisson, gravity, damping, cfl_fraction, material, integrator, release,
+                          deflection_range, tip_speed_range, load_amplitude_range, load_frequency_range)
+        mesh = box_mesh([self.length, self.height], self.mesh_shape, "quad")
+        self._set_body(ElasticBody(mesh, self.material, self.rho, clamped=mesh.p[0] == 0.0, intorder=2), time_step)
+        self.load_direction, self.load_power = [0.0, 1.0], 1.0  # b = A sin(2π f t) (X₁/L) e₂
+
+    def _set_physics(self, density: float, young: float, poisson: float, gravity: float, damping: float,
+                     cfl_fraction: float, material: str, integrator: str, release: str,
+                     deflection_range: Sequence[float], tip_speed_range: Sequence[float],
+                     load_amplitude_range: Sequence[float], load_frequency_range: Sequence[float]) -> None:
+        """Check and take the settings an elastic body shares with any other (material, forces, releases, time
+        stepping); the body's geometry is the subclass's."""
+        check_positive(density=density, young=young, cfl_fraction=cfl_fraction)
         if not 0 <= poisson < 0.5:
             raise ValueError(f"scene.poisson must be in [0, 0.5), got {poisson!r}")
         for key, value in [("gravity", gravity), ("damping", damping)]:
             if not (np.isfinite(value) and value >= 0):
                 raise ValueError(f"scene.{key} must be a finite number ≥ 0, got {value!r}")
-        if len(mesh) != 2 or any(int(n) != n or n < 1 for n in mesh):
-            raise ValueError(f"scene.mesh must be two integers (nx, ny) ≥ 1, got {list(mesh)!r}")
         if release not in ("shape", "modal"):
             raise ValueError(f"scene.release must be 'shape' or 'modal', got {release!r}")
         if material not in MATERIALS:
@@ -141,23 +156,16 @@ class ElasticCantilever(Scene):
             raise ValueError(f"scene.integrator must be 'verlet' or 'implicit_midpoint', got {integrator!r}")
         check_range(deflection_range=deflection_range, tip_speed_range=tip_speed_range,
                     load_amplitude_range=load_amplitude_range, load_frequency_range=load_frequency_range)
-        self.length, self.height, self.rho = float(length), float(height), float(density)
-        self.young, self.poisson, self.gravity = float(young), float(poisson), float(gravity)
-        self.mesh_shape = [int(n) for n in mesh]
-        self.cfl_fraction = float(cfl_fraction)
+        self.rho, self.young, self.poisson, self.gravity = float(density), float(young), float(poisson), float(gravity)
+        self.damping, self.cfl_fraction = float(damping), float(cfl_fraction)
         self.deflection_range = [float(v) for v in deflection_range]
         self.tip_speed_range = [float(v) for v in tip_speed_range]
-        self.damping = float(damping)
         self.load_amplitude_range = [float(v) for v in load_amplitude_range]
         self.load_frequency_range = [float(v) for v in load_frequency_range]
         self.loaded = any(v != 0 for v in self.load_amplitude_range)  # actuation present
-        self.release = str(release)
-        self.material_name, self.integrator = str(material), str(integrator)
+        self.material_name, self.integrator, self.release = str(material), str(integrator), str(release)
         self.material = get_material(self.material_name, self.young, self.poisson)
         self.lam, self.mu = self.material.lam, self.material.mu
-        mesh = box_mesh([self.length, self.height], self.mesh_shape, "quad")
-        self._set_body(ElasticBody(mesh, self.material, self.rho, clamped=mesh.p[0] == 0.0, intorder=2), time_step)
-        self.load_direction, self.load_power = [0.0, 1.0], 1.0  # b = A sin(2π f t) (X₁/L) e₂
 
     def _set_body(self, body: ElasticBody, time_step: Optional[float]) -> None:
         """Take the full-order body: its box, clamp, tip (the nodes at the largest X₁) and stable time step."""

@@ -27,9 +27,8 @@ import numpy as np
 import torch
 
 from lnf.fem.body import ElasticBody, box_mesh, read_mesh
-from lnf.fem.materials import MATERIALS, get_material
 from lnf.quadrature import Quadrature, midpoint_grid
-from lnf.scenes.base import StabilityCases, check_positive, check_range
+from lnf.scenes.base import StabilityCases
 from lnf.scenes.elastic import ElasticCantilever
 
 
@@ -62,35 +61,15 @@ class SoftBody(ElasticCantilever):
                  tip_speed_range: Sequence[float] = (-0.2, 0.2), load_amplitude_range: Sequence[float] = (0.0, 0.0),
                  load_frequency_range: Sequence[float] = (0.5, 1.0), load_direction: Optional[Sequence[float]] = None,
                  load_power: float = 4.0) -> None:
-        check_positive(density=density, young=young, cfl_fraction=cfl_fraction)
-        if not 0 <= poisson < 0.5:
-            raise ValueError(f"scene.poisson must be in [0, 0.5), got {poisson!r}")
-        for key, value in [("gravity", gravity), ("damping", damping), ("load_power", load_power)]:
-            if not (np.isfinite(value) and value >= 0):
-                raise ValueError(f"scene.{key} must be a finite number ≥ 0, got {value!r}")
-        if material not in MATERIALS:
-            raise ValueError(f"scene.material must be one of {sorted(MATERIALS)}, got {material!r}")
-        if integrator not in ("verlet", "implicit_midpoint"):
-            raise ValueError(f"scene.integrator must be 'verlet' or 'implicit_midpoint', got {integrator!r}")
-        if release not in ("shape", "modal"):
-            raise ValueError(f"scene.release must be 'shape' or 'modal', got {release!r}")
-        check_range(deflection_range=deflection_range, tip_speed_range=tip_speed_range,
-                    load_amplitude_range=load_amplitude_range, load_frequency_range=load_frequency_range)
+        if not (np.isfinite(load_power) and load_power >= 0):
+            raise ValueError(f"scene.load_power must be a finite number ≥ 0, got {load_power!r}")
+        self._set_physics(density, young, poisson, gravity, damping, cfl_fraction, material, integrator, release,
+                          deflection_range, tip_speed_range, load_amplitude_range, load_frequency_range)
         self.mesh_file = str(mesh_file) if mesh_file else None
         self.box, self.cells, self.cell_kind = [float(v) for v in box], [int(n) for n in cells], str(cell_kind)
         self.clamp = clamp
         self.quadrature_order = None if quadrature_order is None else int(quadrature_order)
-        self.rho, self.young, self.poisson, self.gravity = float(density), float(young), float(poisson), float(gravity)
-        self.damping, self.cfl_fraction = float(damping), float(cfl_fraction)
-        self.material_name, self.integrator, self.release = str(material), str(integrator), str(release)
-        self.deflection_range = [float(v) for v in deflection_range]
-        self.tip_speed_range = [float(v) for v in tip_speed_range]
-        self.load_amplitude_range = [float(v) for v in load_amplitude_range]
-        self.load_frequency_range = [float(v) for v in load_frequency_range]
-        self.loaded = any(v != 0 for v in self.load_amplitude_range)
         self.load_power = float(load_power)
-        self.material = get_material(self.material_name, self.young, self.poisson)
-        self.lam, self.mu = self.material.lam, self.material.mu
         mesh, sets = self._mesh()
         if self.clamp is not None:
             if self.clamp not in sets:
