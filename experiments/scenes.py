@@ -26,6 +26,10 @@ The measurements, and what each asks of the scene (``lnf.scenes.Scene``):
   reference (``shape.png``).
 - ``decay``: where the scene is not conservative (``Scene.is_conservative`` false) and has reference energies:
   the free decay of the test initial states, without their loads (``decay.png``).
+- ``damped``: where the scene is conservative and can add a damping (``Scene.with_damping``): the test initial
+  states under mass-proportional damping α = --damping, the reference re-simulated with it and our model, trained
+  without it, given the pulled-back damping force −α M̃ q̃̇ and no retraining (exact pullback: the table holds the
+  conservative parts only) (``damped.png``, ``damped_tip.png``).
 
 To set a trajectory's load the study uses the scene's ``with_controls(states, controls)`` if it has one, else the
 last c entries of the full-order state where ``Scene.controls`` reads them from there. ``tip*.png`` draw the field
@@ -467,6 +471,32 @@ def decay(ctx: Context) -> dict[str, Any]:
                            "largest_energy_rise_per_sample_over_scale": float(np.max(rise))}}
 
 
+def damped(ctx: Context) -> dict[str, Any]:
+    """The test initial states under mass-proportional damping: the dissipated energy, ours against the reference."""
+    rate = float(ctx.options.damping)
+    scene = ctx.scene.with_damping(rate)
+    model = copy.deepcopy(ctx.model)
+    model.scene = scene
+    if hasattr(model, "set_tabulation"):
+        model.set_tabulation(None)
+    split, times = ctx.split, ctx.split.times
+    ev = evaluate(model, split, states=scene.simulate(split.states[:, 0], times))
+    e = ev.energies
+    pred = e["kinetic_pred"] + e["potential_pred"]
+    true = e["kinetic_true"] + e["potential_true"]
+    horizon = float(times[split.train_times])
+    _ours_against_reference(times, pred / scene.energy_scale, true / scene.energy_scale, "total energy / E_scale",
+                            f"damped, α = {rate:g} 1/s (trained undamped)", ctx.out / "damped.png", horizon=horizon)
+    _probe_figure(ev, ctx.out / "damped_tip.png", f"damped, α = {rate:g} 1/s (trained undamped), dt = "
+                  f"{times[1] - times[0]:g} s", horizon=horizon)
+    lost_ours, lost_true = pred[:, 0] - pred[:, -1], true[:, 0] - true[:, -1]
+    return {"damped": {"damping_per_second": rate, **pick(ev.metrics, *LOAD_KEYS),
+                       "dissipated_ratio_ours_over_reference_median": float(np.median(lost_ours / lost_true)),
+                       "energy_error_max_over_scale": float(np.max(np.abs(pred - true)) / scene.energy_scale),
+                       "largest_energy_rise_per_sample_over_scale":
+                           float(np.max(np.diff(pred, axis=1)) / scene.energy_scale)}}
+
+
 def shape(ctx: Context) -> dict[str, Any]:
     """The deformed body in 3-D, ours against the reference, at four times of the first test trajectory
     (``shape.png``: the evaluation points moved to X + u, coloured by the displacement's size, the reference's
@@ -552,12 +582,23 @@ def _why_not_decay(scene: Any) -> Optional[str]:
     return _no_simulator(scene)
 
 
+def _why_not_damped(scene: Any) -> Optional[str]:
+    if not scene.is_conservative:
+        return "it is not conservative: its own damping or loads act (see decay)"
+    if not scene.capabilities()["damping"]:
+        return "it cannot add a damping (Scene.with_damping)"
+    if not scene.capabilities()["true_energies"]:
+        return "it has no reference energies (true_energy_parts)"
+    return _no_simulator(scene)
+
+
 MEASUREMENTS: dict[str, Measurement] = {
     "black_box": Measurement(black_box, _why_not_black_box),
     "modes": Measurement(modes, _why_not_modes),
     "speedup": Measurement(speedup, _why_not_speedup),
     "loads": Measurement(loads, _why_not_loads),
     "decay": Measurement(decay, _why_not_decay),
+    "damped": Measurement(damped, _why_not_damped),
     "shape": Measurement(shape, _why_not_shape),
 }
 
@@ -602,7 +643,11 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                         help="speedup: the in-horizon field error that the reference's and our steps must meet")
     parser.add_argument("--unseen-load", type=float, nargs="+", default=None, metavar="C",
                         help="loads: the load parameters not seen in training (default: beyond the training range)")
+    parser.add_argument("--damping", type=float, default=0.5, metavar="ALPHA",
+                        help="damped: the mass-proportional damping rate α [1/s] (default 0.5)")
     args = parser.parse_args(argv)
+    if not (np.isfinite(args.damping) and args.damping > 0):
+        parser.error(f"--damping must be a rate > 0 [1/s], got {args.damping}")
     if args.scene is None and args.ckpt is None:
         parser.error("give --scene (its default checkpoint) or --ckpt")
     config_dir = args.config_dir.expanduser().resolve() if args.config_dir else None

@@ -78,6 +78,10 @@ def test_reduced_damping_force_is_minus_alpha_mass_velocity(rng):
     """With a linear embedding, τ̃ = Σ w Jᵀ(−α ρ J v) = −α M̃ v, so the damped acceleration differs by −α v."""
     damped = ElasticCantilever(mesh=(4, 2), damping=0.7, load_amplitude_range=(0.0, 0.0))
     free = ElasticCantilever(mesh=(4, 2))
+    assert free.capabilities()["damping"] and free.with_damping(0.7).params() == damped.params()
+    assert free.with_damping(0.7).is_conservative is False and free.damping == 0.0  # a copy; the scene unchanged
+    with pytest.raises(ValueError, match="damping rate"):
+        free.with_damping(-1.0)
     emb = LinearEmbedding(damped.bounds, latent_dim=2, out_dim=2, degree=2).double()
     with torch.no_grad():
         emb.modes.copy_(0.1 * torch.as_tensor(rng.standard_normal(emb.modes.shape)))

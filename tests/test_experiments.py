@@ -363,7 +363,7 @@ def test_pareto_and_scenes_run_the_vibrating_string_from_its_own_folder(tmp_path
         "--threads", "1")
     result = json.loads((work / "scenes" / "results.json").read_text())
     assert result["measurements"] == ["black_box", "modes"]
-    assert set(result["skipped"]) == {"speedup", "loads", "decay", "shape"} and len(result["pod"]) == 2
+    assert set(result["skipped"]) == {"speedup", "loads", "decay", "shape", "damped"} and len(result["pod"]) == 2
     assert (work / "scenes" / "vpt.png").is_file() and (work / "scenes" / "modes.png").is_file()
 
 
@@ -449,7 +449,8 @@ def test_scenes_script_measures_a_tiny_checkpoint(scene, tmp_path):
 
 def test_scenes_script_chooses_its_measurements_by_what_the_scene_declares():
     """No scene names: the black box where baselines() allows it, POD modes where POD can run, the speed-up where the
-    reference is expensive, loads where the scene has controls, the free decay where it is not conservative."""
+    reference is expensive, loads where the scene has controls, the free decay where it is not conservative, the
+    damped rollout where a conservative scene can add a damping."""
     import numpy as np
 
     sys.path[:0] = [str(ROOT / "experiments"), str(ROOT / "examples")]
@@ -462,11 +463,13 @@ def test_scenes_script_chooses_its_measurements_by_what_the_scene_declares():
         return [m for m, why in scenes.applicable(scene).items() if why is None]
 
     assert allowed(LiftedDoublePendulum()) == allowed(VibratingString()) == ["black_box", "modes"]
-    assert allowed(ElasticCantilever(mesh=(6, 3))) == ["black_box", "modes", "speedup"]
+    assert allowed(ElasticCantilever(mesh=(6, 3))) == ["black_box", "modes", "speedup", "damped"]
     actuated = ElasticCantilever(mesh=(6, 3), damping=0.3, load_amplitude_range=(-0.6, 0.6),
                                  load_frequency_range=(0.3, 0.7))
     assert allowed(actuated) == ["modes", "speedup", "loads", "decay"]
     assert "baselines()" in scenes.applicable(actuated)["black_box"]
+    assert "not conservative" in scenes.applicable(actuated)["damped"]
+    assert "with_damping" in scenes.applicable(VibratingString())["damped"]
     # loads are set where the scene keeps them (the state's last entries), checked through controls()
     states = actuated.sample_initial_states(3, np.random.default_rng(0))
     moved = scenes.with_controls(actuated, states, np.tile([0.5, 1.2], (3, 1)))
@@ -479,7 +482,8 @@ def test_scenes_script_chooses_its_measurements_by_what_the_scene_declares():
 
 @pytest.mark.parametrize("scene", ["elastic", "elastic_actuated"])
 def test_scenes_script_measures_a_tiny_elastic_checkpoint(scene, tmp_path):
-    """The speed-up and step search (elastic), the decay and unseen load (actuated), and the tip figures."""
+    """The speed-up, step search and damped rollout (elastic), the decay and unseen load (actuated), and the tip
+    figures."""
     run = tmp_path / "run"
     _run(["-m", "lnf.train", f"+experiment={scene}", "trainer=smoke", "logger=csv", "scene.mesh=[6,3]",
           "data.n_train=2", "data.n_val=1", "data.n_test=2", "data.n_times=12", "data.train_times=6",
@@ -487,7 +491,7 @@ def test_scenes_script_measures_a_tiny_elastic_checkpoint(scene, tmp_path):
           "quadrature.order=[4,3]", "evaluation.long_steps=4", "evaluation.long_trajectories=1",
           f"paths.data_dir={tmp_path / 'data'}", f"hydra.run.dir={run}"], png_only=True)
     out = tmp_path / "out"
-    measure = ["speedup"] if scene == "elastic" else ["loads", "decay"]  # the black box and POD modes: the test above
+    measure = ["speedup", "damped"] if scene == "elastic" else ["loads", "decay"]  # the black box and POD modes: the test above
     _run(["experiments/scenes.py", "--scene", scene, "--ckpt", str(run / "checkpoints" / "last.ckpt"),
           "--out", str(out), "--threads", "1", "--measure", *measure], png_only=True)
     result = json.loads((out / "results.json").read_text())
@@ -495,6 +499,8 @@ def test_scenes_script_measures_a_tiny_elastic_checkpoint(scene, tmp_path):
     if scene == "elastic":
         assert result["speedup"] > 0 and len(result["rom"]) == 3 and (out / "tip.png").is_file()
         assert len(result["fom"]) == 5 and result["fom"][0]["step_factor"] == 1.0  # the FEM's own step, then larger
+        assert result["damped"]["damping_per_second"] == 0.5 and (out / "damped.png").is_file()
+        assert "dissipated_ratio_ours_over_reference_median" in result["damped"]
     else:
         # a 1-epoch model may diverge (nan); the decay itself is tested in tests/test_elastic.py (damping tests)
         assert "largest_energy_rise_per_sample_over_scale" in result["free_decay"] and (out / "decay.png").is_file()

@@ -142,7 +142,8 @@ class Scene:
     :meth:`sample_initial_states` (a full-order reference, to generate data), :meth:`fields` (fields of full-order
     states), :meth:`true_energy_parts` (the reference energies), :meth:`kinetic_correction`,
     :meth:`generalized_force` and :meth:`controls` (non-conservative forces and loads), :meth:`clamp_factor`,
-    :meth:`field_gradients`, :meth:`released_at_rest` (the stability study's release cases).
+    :meth:`field_gradients`, :meth:`released_at_rest` (the stability study's release cases), :meth:`with_damping`
+    (the same body with a damping added: energy behaviour under damping, without retraining).
 
     :meth:`capabilities` says which optional parts a scene has: code asks it, never a scene's name.
 
@@ -193,7 +194,7 @@ class Scene:
     def capabilities(self) -> dict[str, bool]:
         """What the scene declares it can do, by name: ``simulator`` (a full-order reference that can generate
         data), ``fields``, ``true_energies``, ``conservative`` (False: damping or loads act), ``kinetic_correction``,
-        ``clamp``, ``field_gradients``, ``release_at_rest``."""
+        ``clamp``, ``field_gradients``, ``release_at_rest``, ``damping`` (:meth:`with_damping`)."""
         return {
             "simulator": self.provides("simulate") and self.provides("sample_initial_states"),
             "fields": self.provides("fields"),
@@ -203,6 +204,7 @@ class Scene:
             "clamp": self.provides("clamp_factor"),
             "field_gradients": self.provides("field_gradients"),
             "release_at_rest": self.provides("released_at_rest"),
+            "damping": self.provides("with_damping"),
         }
 
     @property
@@ -285,6 +287,13 @@ class Scene:
         mesh: what ``quadrature=mesh`` integrates the pulled-back Lagrangian with."""
         raise self._missing("element_quadrature", "quadrature=mesh needs (the quadrature of the scene's own mesh)")
 
+    def with_damping(self, rate: float) -> "Scene":
+        """A copy of the scene with mass-proportional damping −α ω0 q̇ of `rate` α [1/s] (its full-order reference
+        and its :meth:`generalized_force` both damped). Pulled back through any embedding φ this force is exactly
+        −α M̃(q̃) q̃̇, so a model trained on the undamped scene predicts the damped one without retraining."""
+        raise self._missing("with_damping", "the damped-energy measurement (experiments/scenes.py --measure damped) "
+                            "needs")
+
     # -- the full-order model (optional) -------------------------------------------------------
     def sample_initial_states(self, n: int, rng: np.random.Generator) -> np.ndarray:
         """`n` full-order initial states (n, S) drawn with `rng`: the trajectories of a generated dataset."""
@@ -340,7 +349,7 @@ class Scene:
 
 OPTIONAL_PARTS = ("simulate", "sample_initial_states", "fields", "true_energy_parts", "kinetic_correction",
                   "generalized_force", "controls", "clamp_factor", "field_gradients", "released_at_rest",
-                  "observation_points", "element_quadrature")
+                  "observation_points", "element_quadrature", "with_damping")
 
 
 def importable_name(cls: type) -> str:

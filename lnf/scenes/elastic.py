@@ -348,6 +348,12 @@ class ElasticCantilever(Scene):
                          rng.uniform(*self.load_frequency_range, size=n)], -1)
         return self.pack(self.release_shape(tip), self.release_velocity(speed), load)
 
+    def with_damping(self, rate: float) -> "ElasticCantilever":
+        """The same body (and loads) with mass-proportional damping α = `rate` [1/s] in place of its own."""
+        if not (np.isfinite(rate) and rate >= 0):
+            raise ValueError(f"damping rate must be a finite number ≥ 0 [1/s], got {rate!r}")
+        return type(self)(**{**self.params(), "damping": float(rate)})
+
     def released_at_rest(self, amplitude: float) -> np.ndarray:
         """The release shape with tip deflection `amplitude` [m], at rest and unloaded (amplitude 0 at the
         middle of the load-frequency range)."""
