@@ -452,6 +452,17 @@ def loads(ctx: Context) -> dict[str, Any]:
                             **pick(unseen.metrics, *LOAD_KEYS)}}
 
 
+def _total_energies(ev: Any) -> tuple[np.ndarray, np.ndarray]:
+    """Total energy (n, T) of an evaluation, ours and the reference's."""
+    e = ev.energies
+    return e["kinetic_pred"] + e["potential_pred"], e["kinetic_true"] + e["potential_true"]
+
+
+def _largest_rise(energy: np.ndarray, scale: float) -> float:
+    """The largest rise of an energy (n, T) between consecutive samples, over `scale`."""
+    return float(np.max(np.diff(energy, axis=1))) / scale
+
+
 def decay(ctx: Context) -> dict[str, Any]:
     """The free decay of the test initial states (their loads removed): does the reduced energy decay?"""
     scene, split, model = ctx.scene, ctx.split, ctx.model
@@ -459,16 +470,13 @@ def decay(ctx: Context) -> dict[str, Any]:
     states0 = split.states[:, 0]
     free = with_controls(scene, states0, np.zeros_like(scene.controls(states0))) if scene.has_controls else states0
     ev = evaluate(model, split, states=scene.simulate(free, times))
-    e = ev.energies
-    pred = e["kinetic_pred"] + e["potential_pred"]
-    true = e["kinetic_true"] + e["potential_true"]
+    pred, true = _total_energies(ev)
     _ours_against_reference(times, pred / scene.energy_scale, true / scene.energy_scale, "total energy / E_scale",
                             "free decay (no load)", ctx.out / "decay.png")
-    rise = np.max(np.diff(pred, axis=1), axis=1) / scene.energy_scale
     return {"free_decay": {**pick(ev.metrics, *LOAD_KEYS),
                            "energy_ratio_end_over_start_ours_median": float(np.median(pred[:, -1] / pred[:, 0])),
                            "energy_ratio_end_over_start_fem_median": float(np.median(true[:, -1] / true[:, 0])),
-                           "largest_energy_rise_per_sample_over_scale": float(np.max(rise))}}
+                           "largest_energy_rise_per_sample_over_scale": _largest_rise(pred, scene.energy_scale)}}
 
 
 def damped(ctx: Context) -> dict[str, Any]:
@@ -481,9 +489,7 @@ def damped(ctx: Context) -> dict[str, Any]:
         model.set_tabulation(None)
     split, times = ctx.split, ctx.split.times
     ev = evaluate(model, split, states=scene.simulate(split.states[:, 0], times))
-    e = ev.energies
-    pred = e["kinetic_pred"] + e["potential_pred"]
-    true = e["kinetic_true"] + e["potential_true"]
+    pred, true = _total_energies(ev)
     horizon = float(times[split.train_times])
     _ours_against_reference(times, pred / scene.energy_scale, true / scene.energy_scale, "total energy / E_scale",
                             f"damped, α = {rate:g} 1/s (trained undamped)", ctx.out / "damped.png", horizon=horizon)
@@ -493,8 +499,7 @@ def damped(ctx: Context) -> dict[str, Any]:
     return {"damped": {"damping_per_second": rate, **pick(ev.metrics, *LOAD_KEYS),
                        "dissipated_ratio_ours_over_reference_median": float(np.median(lost_ours / lost_true)),
                        "energy_error_max_over_scale": float(np.max(np.abs(pred - true)) / scene.energy_scale),
-                       "largest_energy_rise_per_sample_over_scale":
-                           float(np.max(np.diff(pred, axis=1)) / scene.energy_scale)}}
+                       "largest_energy_rise_per_sample_over_scale": _largest_rise(pred, scene.energy_scale)}}
 
 
 def shape(ctx: Context) -> dict[str, Any]:
