@@ -2,7 +2,7 @@
 
     python experiments/elastic_diagnostics.py --content                  # both releases, 16 runs of the FEM model
     python experiments/elastic_diagnostics.py --oracle                   # what a 1-D reduction can reach at best
-    python experiments/elastic_diagnostics.py --ckpt outputs/issue4/elastic/checkpoints/last.ckpt
+    python experiments/elastic_diagnostics.py --ckpt outputs/elastic/runs/<run>/checkpoints/last.ckpt
 
 --content simulates 16 runs (5 s) of each release (``scene.release``: the Euler–Bernoulli "shape" and the
 "modal" one) and prints the share of the displacement and of the velocity (mass-weighted, from the reference

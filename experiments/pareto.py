@@ -97,11 +97,29 @@ def reference_checkpoint(study: S.Study) -> Path:
     raise RuntimeError(f"no width-{want} run of our model in {study.out}")
 
 
+MAX_QUADRATURE_POINTS = 4096  # a rule of more points per evaluation job is left out (32³ on a 3-D body: 24 GB)
+
+
+def _within_points(study: S.Study, per_axis: str, what: str) -> str:
+    """The comma-separated points-per-axis counts of `per_axis` whose rule on the scene's body has at most
+    MAX_QUADRATURE_POINTS points (each count to the power of the body's dimension); the others are named as left out."""
+    dim = study.scene_object().body_dim
+    counts = [int(n) for n in per_axis.split(",")]
+    kept = [n for n in counts if n ** dim <= MAX_QUADRATURE_POINTS]
+    dropped = [n for n in counts if n not in kept]
+    if dropped:
+        print(f"[{study.name}] {what} {', '.join(map(str, dropped))} left out: more than {MAX_QUADRATURE_POINTS} "
+              f"points on a {dim}-D body", flush=True)
+    return ",".join(map(str, kept or counts[:1]))
+
+
 def evaluation_sweeps(study: S.Study, ckpt: Path, prefix: str, label: dict) -> None:
     smoke = study.mode == "smoke"
     common = [f"ckpt_path={ckpt}", "figures=0", f"threads={study.threads}"]
     gl = "2,4" if smoke else "4,8,12,16,32" if study.mode == "reduced" and not prefix else "4,6,8,12,16,24,32"
     uni = "4" if smoke else "16,32" if study.mode == "reduced" else "16,32,64"
+    gl, uni = (_within_points(study, rule, name) for rule, name in ((gl, "Gauss–Legendre orders"),
+                                                                      (uni, "uniform resolutions")))
     study.multirun(f"{prefix}quad_gl", [*common, "quadrature=gauss_legendre", f"quadrature.order={gl}"], "lnf.evaluate",
                    {**label, "knob": "quadrature", "quadrature": "gauss_legendre"})
     if prefix:  # a given (default-size) checkpoint: the Gauss–Legendre sweep only (uniform 64² at width 256 takes long)

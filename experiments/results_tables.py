@@ -71,7 +71,8 @@ class Spec:
         ``pareto``: ``pareto.csv`` of a Pareto study, the most accurate point of each method (as the study's own
         summary chooses it); ``study``: the ``table``-th Markdown table of the study's ``summary.md`` (the study's
         own reduction of its CSV, which is copied beside it); ``metrics``: rows ``metrics`` (label, key) of a
-        run's ``metrics.json``; ``transcribed``: no raw outputs known, ``table.csv`` only.
+        run's ``metrics.json`` (or of the JSON file ``file``, nested keys joined by ``/``: e.g. ``results.json`` of
+        ``experiments/scenes.py``); ``transcribed``: no raw outputs known, ``table.csv`` only.
     raw: the folder of the raw outputs, relative to the repository (None: given on the command line, or none).
     command: the command that makes them.
     """
@@ -82,9 +83,10 @@ class Spec:
     table: int = 0
     csv: Optional[str] = None
     metrics: tuple[tuple[str, str], ...] = ()
+    file: str = "metrics.json"
 
 
-SCENES = ["pendulum", "double_pendulum", "bump", "elastic", "elastic_actuated"]
+SCENES = ["pendulum", "double_pendulum", "bump", "elastic", "elastic_actuated", "soft_body"]
 
 
 def _study(name: str, scene: str, kind: str = "study", table: int = 0) -> Spec:
@@ -104,7 +106,7 @@ PENDULUM_METRICS = (
     ("`energy_drift_long/max` (1 000 steps)", "energy_drift_long/max"),
     ("`vpt/median` [s]", "vpt/median"),
     ("`rollout_seconds_per_trajectory`", "rollout_seconds_per_trajectory"),
-    ("training [s] · whole run [s]", "train_seconds|total_seconds"),
+    ("data and training [s] · whole run [s]", "train_seconds|total_seconds"),
     ("epochs run (of the budget)", "epochs_run|max_epochs"),
 )
 
@@ -118,8 +120,30 @@ SCENE_METRICS = (
     ("`energy_drift_long/max` (1 000 steps)", "energy_drift_long/max"),
     ("`vpt/median` [s]", "vpt/median"),
     ("`rollout_seconds_per_trajectory` · with decoding", "rollout_seconds_per_trajectory|fields_seconds_per_trajectory"),
-    ("training [s] · whole run [s]", "train_seconds|total_seconds"),
+    ("data and training [s] · whole run [s]", "train_seconds|total_seconds"),
     ("epochs run (of the budget)", "epochs_run|max_epochs"),
+)
+
+# experiments/scenes.py's results.json on a body with an expensive reference (speedup) and an added damping (damped)
+FEM_SCENE_MEASUREMENTS = (
+    ("test trajectories · training horizon [s] · FEM state entries (u and v of every node, the load)",
+     "trajectories|horizon_s|fom_state_size"),
+    ("FEM: largest step tried (× its own) · its seconds for all of them", "fom_step_factor|fom_seconds"),
+    ("ours, Chebyshev table: step [s] · seconds · speed-up", "rom_dt|rom_seconds|speedup"),
+    ("ours, exact pullback: seconds · speed-up", "rom_seconds_exact|speedup_exact"),
+    ("ours, table, every stored frame decoded on the evaluation points: points · seconds · speed-up",
+     "decoding_points|rom_seconds_with_decoding|speedup_with_decoding"),
+    ("conservative: `field_rel_l2` in horizon (median · max) · after it", "ours/field_rel_l2/in_horizon/median|"
+     "ours/field_rel_l2/in_horizon/max|ours/field_rel_l2/extrapolation/median"),
+    ("conservative: `energy_drift_long/max` (1 000 steps) · diverged long rollouts",
+     "ours/energy_drift_long/max|ours/diverged_count_long"),
+    ("damped (α [1/s], trained undamped): α · `field_rel_l2` all (median · max) · in horizon · after",
+     "damped/damping_per_second|damped/field_rel_l2/all/median|damped/field_rel_l2/all/max|"
+     "damped/field_rel_l2/in_horizon/median|damped/field_rel_l2/extrapolation/median"),
+    ("damped: dissipated energy, ours / FEM (median) · largest energy error / E_scale · diverged fraction",
+     "damped/dissipated_ratio_ours_over_reference_median|damped/energy_error_max_over_scale|"
+     "damped/diverged_fraction"),
+    ("all measurements [s]", "seconds"),
 )
 
 SPECS: dict[str, Spec] = {
@@ -129,10 +153,13 @@ SPECS: dict[str, Spec] = {
     **{f"sparse_noisy-{s}": _study("sparse_noisy", s) for s in SCENES},
     "model_size-pendulum": _study("model_size", "pendulum"),
     "model_size-elastic": _study("model_size", "elastic"),
+    "model_size-soft_body": _study("model_size", "soft_body"),
     "cost_scaling-pendulum": _study("cost_scaling", "pendulum"),
     "roofline-pendulum": _study("roofline", "pendulum"),
     "pendulum_default": Spec("metrics", "python -m lnf.train +experiment=pendulum", metrics=PENDULUM_METRICS),
     "soft_body_default": Spec("metrics", "python -m lnf.train +experiment=soft_body", metrics=SCENE_METRICS),
+    "soft_body_scenes": Spec("metrics", "python experiments/scenes.py --scene soft_body --measure speedup shape damped",
+                             metrics=FEM_SCENE_MEASUREMENTS, file="results.json"),
     "pendulum_lr1e-3": Spec("metrics", "python -m lnf.train +experiment=pendulum optimizer.lr=1e-3",
                             metrics=PENDULUM_METRICS),
     "evaluate_readme": Spec("metrics", "python -m lnf.evaluate ckpt_path=<the pendulum_lr1e-3 run>/checkpoints/last.ckpt "
@@ -255,6 +282,17 @@ def _parse(text: str) -> Any:
         return {"inf": float("inf"), "-inf": float("-inf"), "nan": float("nan")}.get(text, text)
 
 
+def _flat(values: Any, prefix: str = "") -> dict[str, Any]:
+    """A JSON object with its nested objects' keys joined by ``/`` (a flat one unchanged)."""
+    if not isinstance(values, dict):
+        return {prefix: values} if prefix else {}
+    out: dict[str, Any] = {}
+    for key, value in values.items():
+        name = f"{prefix}/{key}" if prefix else str(key)
+        out.update(_flat(value, name) if isinstance(value, dict) else {name: value})
+    return out
+
+
 def read_study_csv(path: Path) -> list[dict[str, Any]]:
     """A study's CSV as the study's own rows: parsed values, no key where a cell is empty."""
     with open(path, newline="") as fh:
@@ -300,7 +338,7 @@ def table_of(name: str) -> tuple[list[str], list[list[str]], dict[str, Any], Spe
             raise TableError(f"results/{name}/summary.md: has {len(tables)} tables, table {spec.table} wanted")
         header, rows = tables[spec.table]
     elif spec.kind == "metrics":
-        metrics = _read_json(folder / "metrics.json")
+        metrics = _flat(_read_json(folder / spec.file))
         header, rows = ["metric", "value"], []
         for label, keys in spec.metrics:
             values = [metrics.get(k) for k in keys.split("|")]
@@ -443,8 +481,8 @@ def collect(name: str, raw: Optional[Path]) -> Path:
     if folder is None:
         raise TableError(f"table {name!r}: give the run's folder, --collect {name}=<folder>")
     wanted = {"pareto": ["pareto.csv", "summary.md"], "study": [spec.csv or "", "summary.md"],
-              "metrics": ["metrics.json"]}[spec.kind]
-    needed = {"pareto": "pareto.csv", "study": "summary.md", "metrics": "metrics.json"}[spec.kind]
+              "metrics": [spec.file]}[spec.kind]
+    needed = {"pareto": "pareto.csv", "study": "summary.md", "metrics": spec.file}[spec.kind]
     if not (folder / needed).is_file():
         raise TableError(f"{folder}: no {needed} (has the study or run finished?)")
     record = _run_record(folder)

@@ -1,7 +1,7 @@
 """Acceptance measurements of a trained scene, chosen by what the scene declares.
 
-    python -m lnf.train +experiment=<scene> hydra.run.dir=outputs/issue4/<scene>   # train first
-    python experiments/scenes.py --scene <scene>      # every measurement the scene's declarations allow
+    python -m lnf.train +experiment=<scene>            # train first (a run under outputs/<scene>/runs/)
+    python experiments/scenes.py --scene <scene>      # every measurement the scene's declarations allow, on its newest run
     python experiments/scenes.py --scene <scene> --measure modes --max-modes 12     # only some of them
     python experiments/scenes.py --scene elastic --dynamics tabulated   # our rollouts with the tabulated M̃, Ṽ
     python experiments/scenes.py --scene elastic_actuated --unseen-load 0.5 1.2     # the load of docs/benchmarks/scenes.md
@@ -633,7 +633,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--scene", default=None,
                         help="the experiment (conf/experiment/<scene>.yaml or DIR/experiment/<scene>.yaml): names the "
                              "default checkpoint and output folder; optional with --ckpt")
-    parser.add_argument("--ckpt", default=None, help="default: outputs/issue4/<scene>/checkpoints/last.ckpt")
+    parser.add_argument("--ckpt", default=None, help="default: the newest outputs/<scene>/runs/*/checkpoints/last.ckpt (the folder "
+                             "`python -m lnf.train +experiment=<scene>` trains into)")
     parser.add_argument("--out", default=None, help="default: outputs/scenes/<scene>")
     parser.add_argument("--measure", nargs="+", choices=sorted(MEASUREMENTS), default=None,
                         help="measurements to run (default: every one the scene's declarations allow)")
@@ -666,11 +667,21 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                                                               "config folder with --config-dir)"))
     if args.threads:
         torch.set_num_threads(args.threads)
-    default_ckpt = ROOT / "outputs" / "issue4" / str(args.scene) / "checkpoints" / "last.ckpt"
-    ckpt = Path(args.ckpt).resolve() if args.ckpt else default_ckpt
-    if not ckpt.exists():
-        train = f"python -m lnf.train{f' --config-dir {config_dir}' if config_dir else ''} +experiment={args.scene}"
-        raise SystemExit(f"no checkpoint at {ckpt}; train first: {train} hydra.run.dir=outputs/issue4/{args.scene}")
+    if args.ckpt is None and args.scene is None:
+        parser.error("give --scene (its newest run's checkpoint is used) or --ckpt")
+    train = f"python -m lnf.train{f' --config-dir {config_dir}' if config_dir else ''} +experiment={args.scene}"
+    if args.ckpt:
+        ckpt = Path(args.ckpt).resolve()
+        if not ckpt.exists():
+            raise SystemExit(f"--ckpt {args.ckpt}: no such file ({ckpt})")
+    else:
+        runs = ROOT / "outputs" / str(args.scene) / "runs"
+        found = sorted(runs.glob("*/checkpoints/last.ckpt"), key=lambda p: p.stat().st_mtime)
+        if not found:
+            raise SystemExit(f"no checkpoint under {runs}/*/checkpoints/last.ckpt; train first: {train} "
+                             f"(or give --ckpt)")
+        ckpt = found[-1]
+        print(f"checkpoint: {ckpt} (the newest under {runs})")
     model = load(ckpt)
     model.eval()
     name = args.scene or model.scene.name

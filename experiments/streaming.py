@@ -1,4 +1,4 @@
-"""Training from an HDF5 dataset larger than the memory a run may use (issue 5, "Load").
+"""Training from an HDF5 dataset larger than the memory a run may use.
 
 Generates a lifted-pendulum dataset of about ``--gib`` GiB (almost all of it the coarse fields and
 velocities that training reads), then trains on it in child processes placed in a memory cgroup limited to

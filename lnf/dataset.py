@@ -41,12 +41,14 @@ file and the key.
 """
 from __future__ import annotations
 
+import concurrent.futures
 import contextlib
 import errno
 import hashlib
 import json
 import logging
 import math
+import multiprocessing
 import os
 import shutil
 import socket
@@ -473,19 +475,115 @@ def _write_array(group: h5py.Group, name: str, data: np.ndarray) -> h5py.Dataset
 
 
 SIMULATION_CHUNK = 8  # trajectories per simulate() call of an expensive reference (a step of its progress bar)
+GROUND_TRUTH_FOLDER = "ground_truth"  # beside a dataset: lnf.evaluate's simulated references (simulated_ground_truth)
+WORKERS_ENV = "LNF_SIMULATION_WORKERS"  # processes that simulate an expensive reference's chunks (default: all cores)
+
+_worker_scene: Any = None  # the scene a forked simulation worker inherits (set just before the pool forks)
 
 
-def _simulate(scene: Any, initial: np.ndarray, times: np.ndarray, split: str) -> np.ndarray:
-    """scene.simulate(initial, times) (n, T, S), in chunks of SIMULATION_CHUNK trajectories under a progress bar
-    where ``scene.expensive_reference``."""
+def simulation_workers(n_chunks: int) -> int:
+    """Processes for `n_chunks` chunks: $LNF_SIMULATION_WORKERS if set (≥ 1), else the cores this process may
+    use; 1 where the platform cannot fork."""
+    raw = os.environ.get(WORKERS_ENV)
+    if raw is None or raw.strip() == "":
+        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    else:
+        try:
+            cores = int(raw)
+        except ValueError:
+            raise DatasetError(f"${WORKERS_ENV}={raw!r}: expected a whole number of processes ≥ 1") from None
+        if cores < 1:
+            raise DatasetError(f"${WORKERS_ENV}={raw!r}: expected a whole number of processes ≥ 1")
+    if "fork" not in multiprocessing.get_all_start_methods():
+        return 1
+    return max(1, min(cores, n_chunks))
+
+
+def _start_worker() -> None:
+    """Initialiser of a forked simulation worker: one torch thread (the processes share the cores; as in torch's
+    own DataLoader workers, a forked process uses no thread pool of its parent)."""
+    import torch
+
+    torch.set_num_threads(1)
+
+
+def _simulate_in_worker(initial: np.ndarray, times: np.ndarray) -> np.ndarray:
+    return np.asarray(_worker_scene.simulate(initial, times), dtype=np.float64)
+
+
+def _simulate(scene: Any, initial: np.ndarray, times: np.ndarray, what: str) -> np.ndarray:
+    """scene.simulate(initial, times) (n, T, S); where ``scene.expensive_reference``, in chunks of SIMULATION_CHUNK
+    trajectories under a progress bar, by :func:`simulation_workers` forked processes at once (each chunk is
+    simulated as it would be alone: the same numbers in any number of processes)."""
+    global _worker_scene
     if not getattr(scene, "expensive_reference", False) or len(initial) <= SIMULATION_CHUNK:
         return np.asarray(scene.simulate(initial, times), dtype=np.float64)
-    parts = []
-    with progress_bar(True, len(initial), f"simulating the {split} split ({scene.name})", "trajectories") as advance:
-        for i in range(0, len(initial), SIMULATION_CHUNK):
-            parts.append(np.asarray(scene.simulate(initial[i:i + SIMULATION_CHUNK], times), dtype=np.float64))
-            advance(len(parts[-1]))
+    chunks = [initial[i:i + SIMULATION_CHUNK] for i in range(0, len(initial), SIMULATION_CHUNK)]
+    workers = simulation_workers(len(chunks))
+    parts: list[Optional[np.ndarray]] = [None] * len(chunks)
+    with progress_bar(True, len(initial), f"simulating {what} ({scene.name}, {workers} "
+                      f"process{'es' if workers > 1 else ''})", "trajectories") as advance:
+        if workers == 1:
+            for k, chunk in enumerate(chunks):
+                parts[k] = np.asarray(scene.simulate(chunk, times), dtype=np.float64)
+                advance(len(chunk))
+        else:
+            _worker_scene = scene
+            try:
+                with concurrent.futures.ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("fork"),
+                                                            initializer=_start_worker) as pool:
+                    futures = {pool.submit(_simulate_in_worker, chunk, times): k for k, chunk in enumerate(chunks)}
+                    for future in concurrent.futures.as_completed(futures):
+                        k = futures[future]
+                        parts[k] = future.result()
+                        advance(len(chunks[k]))
+            except concurrent.futures.process.BrokenProcessPool as err:
+                raise DatasetError(f"scene {scene.name}: a simulation worker process died ({err}); set "
+                                   f"{WORKERS_ENV}=1 to simulate in this process alone") from err
+            finally:
+                _worker_scene = None
     return np.concatenate(parts)
+
+
+def simulated_ground_truth(scene: Any, initial: np.ndarray, times: np.ndarray, folder: Optional[Path]) -> np.ndarray:
+    """scene.simulate(initial, times) (n, T, S). Where ``scene.expensive_reference`` and `folder` is given, the
+    result is kept there as ``<scene>-<hash>.npy`` (the hash of the scene's spec, the initial states and the times,
+    written atomically) and later calls with the same three read it back: the jobs of a sweep that evaluate on the
+    same new horizon or initial states simulate the reference once. A cache file that cannot be read, or holds
+    another shape or a non-finite value, is simulated again and replaced, with a warning."""
+    initial = np.ascontiguousarray(initial, dtype=np.float64)
+    times = np.ascontiguousarray(times, dtype=np.float64)
+    if folder is None or not getattr(scene, "expensive_reference", False):
+        return np.asarray(scene.simulate(initial, times), dtype=np.float64)
+    digest = hashlib.blake2b(digest_size=12)
+    digest.update(json.dumps(scene_record(scene), sort_keys=True).encode())
+    for array in (initial, times):
+        digest.update(str(array.shape).encode())
+        digest.update(_little_endian(array))
+    path = Path(folder) / f"{scene.name}-{digest.hexdigest()}.npy"
+    if path.is_file():
+        try:
+            states = np.load(path, allow_pickle=False)
+        except (OSError, ValueError) as err:
+            log.warning("%s: unreadable (%s); simulating the ground truth again", path, err)
+        else:
+            if states.ndim == 3 and states.shape[:2] == (len(initial), len(times)) and np.isfinite(states).all():
+                log.info("ground truth of %d trajectories × %d samples read from %s", len(initial), len(times), path)
+                return states
+            log.warning("%s: holds shape %s (or non-finite values), expected (%d, %d, S); simulating the ground "
+                        "truth again", path, states.shape, len(initial), len(times))
+    states = _simulate(scene, initial, times, "the ground truth")
+    tmp = path.with_name(f"{path.name}.tmp-{socket.gethostname()}-{os.getpid()}")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with open(tmp, "wb") as fh:
+            np.save(fh, states, allow_pickle=False)
+        os.replace(tmp, path)
+    except OSError as err:  # a cache that cannot be written costs time, not the result
+        log.warning("could not keep the ground truth in %s (%s); it will be simulated again next time", path, err)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return states
 
 
 def _write_split(group: h5py.Group, scene: Any, initial: np.ndarray, masks: np.ndarray, times: np.ndarray,
@@ -493,7 +591,7 @@ def _write_split(group: h5py.Group, scene: Any, initial: np.ndarray, masks: np.n
     """Simulate `initial` (n, S) over `times` and write one split, trajectory by trajectory, hashing each
     (n, T, N, A) field array as it is written. A scene whose reference is expensive (an FEM model) is simulated a
     few trajectories at a time, under a progress bar."""
-    states = _simulate(scene, initial, times, group.name.strip("/"))
+    states = _simulate(scene, initial, times, f"the {group.name.strip('/')} split")
     n, T = len(initial), len(times)
     if states.ndim != 3 or states.shape[:2] != (n, T):
         raise DatasetError(f"scene {scene.name}: simulate() returned shape {states.shape}, expected ({n}, {T}, S)")

@@ -18,7 +18,8 @@ from omegaconf import DictConfig, OmegaConf
 
 from lnf.allocator import keep_freed_memory
 from lnf.config_keys import check_known_keys
-from lnf.dataset import SOURCE_ARRAYS, SPLITS, DatasetConfig, ensure_dataset, load_split, stored_generation, verify_dataset
+from lnf.dataset import (GROUND_TRUTH_FOLDER, SOURCE_ARRAYS, SPLITS, DatasetConfig, ensure_dataset, load_split,
+                         simulated_ground_truth, stored_generation, verify_dataset)
 from lnf.decoding_table import check_decoding
 from lnf.evaluation import evaluate_rollouts, evaluation_cost, long_horizon_energy, quadrature_size
 from lnf.model import build, load
@@ -236,7 +237,8 @@ def evaluate(cfg: DictConfig) -> dict[str, float]:
         states = split.states[:n]
     else:
         log.info("simulating the ground truth of %d trajectories × %d samples (dt = %g s)", n, len(times), dt)
-        states = scene.simulate(initial if initial is not None else split.states[:n, 0], times)
+        states = simulated_ground_truth(scene, initial if initial is not None else split.states[:n, 0], times,
+                                        path.parent / GROUND_TRUTH_FOLDER)
 
     start = time.perf_counter()
     own_states = cfg.get("initial_states") is None

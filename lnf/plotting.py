@@ -678,7 +678,7 @@ def _draw_scattered_body(fig: Figure | SubFigure, pts: np.ndarray, box: np.ndarr
     if dim == 3:
         sel, z_mid, half = _middle_slab(pts, box[2])
         pts, pf, tf = pts[sel], pf[:, sel], tf[:, sel]
-        field_label = f"{field_label} (slab {_X_LABELS[2]} ≈ {z_mid:.3g} ± {half:.2g}, {sel.shape[0]} points)"
+        field_label = f"{field_label}\n(slab {_X_LABELS[2]} ≈ {z_mid:.3g} ± {half:.2g}, {sel.shape[0]} points)"  # two lines: clear of the error bar's label
         what = f"points of the slab {_X_LABELS[2]} ≈ {z_mid:.3g} ± {half:.2g}"
     _draw_fields_scattered(fig, pts[:, :2], box[:2], t[idx], pf[idx], tf[idx], h, field_label, what)
 

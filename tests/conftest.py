@@ -15,6 +15,9 @@ _WORKERS = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
 _THREADS = max(1, min(2, (os.cpu_count() or 1) // _WORKERS))
 os.environ.setdefault("OMP_NUM_THREADS", str(_THREADS))
 torch.set_num_threads(_THREADS)
+# and an expensive reference's dataset is simulated in the test's own process, not in a pool beside the workers
+# (tests/test_dataset_parallel.py sets it for its own cases)
+os.environ.setdefault("LNF_SIMULATION_WORKERS", "1")
 
 
 @pytest.fixture

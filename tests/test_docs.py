@@ -168,3 +168,21 @@ def test_collect_copies_a_study_and_the_table_follows_its_summary(tmp_path, monk
     lines = RT.render("stability-pendulum")
     assert lines[:3] == ["| method | energy drift 20× |", "|---|---|", "| LNF (ours) | 2.65e-05 |"]
     assert "transcribed" not in lines[-1] and "at commit 0123456" in lines[-1]
+
+
+def test_a_table_of_a_nested_results_file_reads_its_keys_joined_by_slashes(tmp_path, monkeypatch):
+    """experiments/scenes.py writes results.json with nested objects ("damped": {...}): a row names them a/b."""
+    run = tmp_path / "outputs" / "scenes" / "soft_body"
+    run.mkdir(parents=True)
+    (run / "results.json").write_text(json.dumps({"speedup": 536.2, "ours": {"field_rel_l2/in_horizon/median": 0.021},
+                                                  "damped": {"damping_per_second": 0.5}}))
+    monkeypatch.setattr(RT, "RESULTS", tmp_path / "results")
+    monkeypatch.setitem(RT.SPECS, "x_scenes", RT.Spec("metrics", "python experiments/scenes.py", file="results.json",
+                                                      metrics=(("speed-up", "speedup"),
+                                                               ("error · α", "ours/field_rel_l2/in_horizon/median|"
+                                                                             "damped/damping_per_second"),
+                                                               ("absent", "nothing/here"))))
+    out = RT.collect("x_scenes", run)
+    assert (out / "results.json").is_file()
+    lines = RT.render("x_scenes")
+    assert lines[:4] == ["| metric | value |", "|---|---|", "| speed-up | 536 |", "| error · α | 0.021 · 0.5 |"]

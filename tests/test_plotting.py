@@ -396,7 +396,7 @@ def test_figure3_scattered_3d_random_points_middle_slab(data, tmp_path):
     assert len(fig.axes) == 3 + 3 * 2 + 2
     n_slab = int(np.count_nonzero(np.abs(pts[:, 2]) <= 1.0 / 16))
     labels = _colorbar_labels(fig)
-    assert labels[0] == f"field q (slab X₃ ≈ 0 ± 0.062, {n_slab} points)" and labels[1] == plotting._ERROR_LABEL
+    assert labels[0] == f"field q\n(slab X₃ ≈ 0 ± 0.062, {n_slab} points)" and labels[1] == plotting._ERROR_LABEL
     tri = fig.axes[3].collections[0]
     assert len(tri.get_paths()) == np.asarray(tri.get_array()).size > n_slab  # ~2·n_slab triangles
     assert fig.axes[3].get_xlim() == (0.0, 2.0) and fig.axes[3].get_ylim() == (0.0, 1.0)
