@@ -105,12 +105,12 @@ def _within_points(study: S.Study, per_axis: str, what: str) -> str:
     MAX_QUADRATURE_POINTS points (each count to the power of the body's dimension); the others are named as left out."""
     dim = study.scene_object().body_dim
     counts = [int(n) for n in per_axis.split(",")]
-    kept = [n for n in counts if n ** dim <= MAX_QUADRATURE_POINTS]
+    kept = [n for n in counts if n ** dim <= MAX_QUADRATURE_POINTS] or counts[:1]  # never an empty sweep
     dropped = [n for n in counts if n not in kept]
     if dropped:
         print(f"[{study.name}] {what} {', '.join(map(str, dropped))} left out: more than {MAX_QUADRATURE_POINTS} "
               f"points on a {dim}-D body", flush=True)
-    return ",".join(map(str, kept or counts[:1]))
+    return ",".join(map(str, kept))
 
 
 def evaluation_sweeps(study: S.Study, ckpt: Path, prefix: str, label: dict) -> None:

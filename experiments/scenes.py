@@ -655,7 +655,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     if not (np.isfinite(args.damping) and args.damping > 0):
         parser.error(f"--damping must be a rate > 0 [1/s], got {args.damping}")
     if args.scene is None and args.ckpt is None:
-        parser.error("give --scene (its default checkpoint) or --ckpt")
+        parser.error("give --scene (its newest run's checkpoint is used) or --ckpt")
     config_dir = args.config_dir.expanduser().resolve() if args.config_dir else None
     if config_dir is not None and not config_dir.is_dir():
         parser.error(f"--config-dir {args.config_dir}: no such folder ({config_dir})")
@@ -667,8 +667,6 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                                                               "config folder with --config-dir)"))
     if args.threads:
         torch.set_num_threads(args.threads)
-    if args.ckpt is None and args.scene is None:
-        parser.error("give --scene (its newest run's checkpoint is used) or --ckpt")
     train = f"python -m lnf.train{f' --config-dir {config_dir}' if config_dir else ''} +experiment={args.scene}"
     if args.ckpt:
         ckpt = Path(args.ckpt).resolve()

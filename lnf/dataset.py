@@ -45,6 +45,7 @@ import concurrent.futures
 import contextlib
 import errno
 import hashlib
+import io
 import json
 import logging
 import math
@@ -62,7 +63,7 @@ import numpy as np
 
 from lnf.progress import progress_bar
 from lnf.quadrature import midpoint_grid
-from lnf.tempfiles import writer_is_gone
+from lnf.tempfiles import write_bytes_atomic, writer_is_gone
 
 FORMAT_VERSION = 2
 SPLITS = ("train", "val", "test")
@@ -573,16 +574,12 @@ def simulated_ground_truth(scene: Any, initial: np.ndarray, times: np.ndarray, f
             log.warning("%s: holds shape %s (or non-finite values), expected (%d, %d, S); simulating the ground "
                         "truth again", path, states.shape, len(initial), len(times))
     states = _simulate(scene, initial, times, "the ground truth")
-    tmp = path.with_name(f"{path.name}.tmp-{socket.gethostname()}-{os.getpid()}")
+    buffer = io.BytesIO()
+    np.save(buffer, states, allow_pickle=False)
     try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        with open(tmp, "wb") as fh:
-            np.save(fh, states, allow_pickle=False)
-        os.replace(tmp, path)
+        write_bytes_atomic(path, buffer.getvalue())
     except OSError as err:  # a cache that cannot be written costs time, not the result
         log.warning("could not keep the ground truth in %s (%s); it will be simulated again next time", path, err)
-    finally:
-        tmp.unlink(missing_ok=True)
     return states
 
 

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import Any, Callable
 
 
 def writer_is_gone(pid: str) -> bool:
@@ -19,15 +20,26 @@ def writer_is_gone(pid: str) -> bool:
     return False
 
 
-def write_text_atomic(path: "str | Path", text: str) -> Path:
-    """`text` written to a temporary name in the same folder (parents created), then renamed over `path`: a reader
+def _replace_atomically(path: "str | Path", write: Callable[[Path], Any]) -> Path:
+    """`write(tmp)` to a temporary name in the same folder (parents created), then rename it over `path`: a reader
     never sees a half-written file, and the temporary is removed whatever happens. Returns the path."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f"{path.name}.tmp-{os.getpid()}")
     try:
-        tmp.write_text(text)
+        write(tmp)
         os.replace(tmp, path)
     finally:
         tmp.unlink(missing_ok=True)
     return path
+
+
+def write_text_atomic(path: "str | Path", text: str) -> Path:
+    """`text` written to a temporary name in the same folder (parents created), then renamed over `path`: a reader
+    never sees a half-written file, and the temporary is removed whatever happens. Returns the path."""
+    return _replace_atomically(path, lambda tmp: tmp.write_text(text))
+
+
+def write_bytes_atomic(path: "str | Path", data: bytes) -> Path:
+    """`data` written as :func:`write_text_atomic` writes text. Returns the path."""
+    return _replace_atomically(path, lambda tmp: tmp.write_bytes(data))
