@@ -419,7 +419,7 @@ def summary(study: S.Study, rows: list[dict], simulator: dict | None = None) -> 
     ref = [r for r in lnf if r.get("knob") == "width" and int(r.get("model.width", 0)) ==
            {"smoke": 16, "reduced": 64, "full": 256}[study.mode]]
     lines = [f"# Pareto study ({study.scene}, {study.mode} settings)\n",
-             f"Machine: {study.machine()}. Command: `{study.command()}`.\n",
+             f"Machine: {study.machine()}. Command: `{study.command()}`. Body dimension: {dim}.\n",
              f"Cost = `{COST}`: latent rollout over the test horizon + decoding at every sample time on the test grid,"
              " per trajectory, all test trajectories rolled out at once (runs with a larger dt decode fewer frames: their"
              " decoding is scaled to the same frame count);"

@@ -450,19 +450,12 @@ def _run_record(folder: Path) -> dict[str, Any]:
 
 
 def _body_dim(folder: Path) -> int:
-    """The body dimension of a study's scene, from a job's evaluation points and grid resolution (2 if unknown)."""
-    import math
-
-    for metrics in sorted(folder.glob("*/*/metrics.json")):
-        config = metrics.parent / ".hydra" / "config.yaml"
-        try:
-            points = float(json.loads(metrics.read_text()).get("evaluation_points", 0))
-            match = re.search(r"^  fine_resolution: (\d+)", config.read_text(), re.M)
-        except (OSError, ValueError, json.JSONDecodeError):
-            continue
-        if match and points > 1 and int(match.group(1)) > 1:
-            return max(1, round(math.log(points) / math.log(int(match.group(1)))))
-    return 2
+    """The body dimension of a Pareto study's scene, as its summary.md states it ("Body dimension: 3.")."""
+    stated = _summary_field(folder / "summary.md", "Body dimension")
+    if stated is None or not stated.isdigit():
+        raise TableError(f"{folder / 'summary.md'}: no 'Body dimension: <n>.' line (experiments/pareto.py "
+                         "writes one: rerun the study, or add the line by hand)")
+    return int(stated)
 
 
 def _summary_field(summary: Path, label: str) -> Optional[str]:

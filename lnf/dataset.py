@@ -512,15 +512,27 @@ def _simulate_in_worker(initial: np.ndarray, times: np.ndarray) -> np.ndarray:
     return np.asarray(_worker_scene.simulate(initial, times), dtype=np.float64)
 
 
+def simulation_chunks(n: int) -> tuple[list[slice], int]:
+    """The trajectories 0..n-1 of an expensive reference split into chunks of at most SIMULATION_CHUNK, as evenly
+    as the processes of :func:`simulation_workers` share them (16 trajectories on 2 cores: 2 × 8; 8: 2 × 4), and
+    the number of processes that simulate them."""
+    workers = simulation_workers(max(1, n))
+    size = max(1, min(SIMULATION_CHUNK, math.ceil(n / workers)))
+    chunks = [slice(i, min(i + size, n)) for i in range(0, n, size)]
+    return chunks, min(workers, len(chunks))
+
+
 def _simulate(scene: Any, initial: np.ndarray, times: np.ndarray, what: str) -> np.ndarray:
-    """scene.simulate(initial, times) (n, T, S); where ``scene.expensive_reference``, in chunks of SIMULATION_CHUNK
-    trajectories under a progress bar, by :func:`simulation_workers` forked processes at once (each chunk is
-    simulated as it would be alone: the same numbers in any number of processes)."""
+    """scene.simulate(initial, times) (n, T, S); where ``scene.expensive_reference``, in the chunks of
+    :func:`simulation_chunks` under a progress bar, by :func:`simulation_workers` forked processes at once (each
+    chunk is simulated as it would be alone: the same numbers in any number of processes)."""
     global _worker_scene
-    if not getattr(scene, "expensive_reference", False) or len(initial) <= SIMULATION_CHUNK:
+    if not getattr(scene, "expensive_reference", False):
         return np.asarray(scene.simulate(initial, times), dtype=np.float64)
-    chunks = [initial[i:i + SIMULATION_CHUNK] for i in range(0, len(initial), SIMULATION_CHUNK)]
-    workers = simulation_workers(len(chunks))
+    slices, workers = simulation_chunks(len(initial))
+    if len(slices) <= 1:
+        return np.asarray(scene.simulate(initial, times), dtype=np.float64)
+    chunks = [initial[s] for s in slices]
     parts: list[Optional[np.ndarray]] = [None] * len(chunks)
     with progress_bar(True, len(initial), f"simulating {what} ({scene.name}, {workers} "
                       f"process{'es' if workers > 1 else ''})", "trajectories") as advance:

@@ -21,6 +21,29 @@ def test_worker_processes_simulate_the_same_trajectories_as_one_process(monkeypa
     assert serial.shape[:2] == (6, 5) and np.array_equal(serial, parallel)
 
 
+def test_chunks_are_shared_evenly_among_the_processes(monkeypatch):
+    """8 trajectories on 2 processes: 2 × 4, not one chunk of 8 in one process; 20: 8, 8, 4 (at most the cap)."""
+    monkeypatch.setenv(D.WORKERS_ENV, "2")
+    assert D.simulation_chunks(8) == ([slice(0, 4), slice(4, 8)], 2)
+    assert [s.stop - s.start for s in D.simulation_chunks(20)[0]] == [8, 8, 4]
+    assert D.simulation_chunks(1) == ([slice(0, 1)], 1)
+    monkeypatch.setenv(D.WORKERS_ENV, "1")
+    assert D.simulation_chunks(8) == ([slice(0, 8)], 1)
+
+
+def test_a_soft_body_simulated_in_other_chunks_gives_the_same_numbers(monkeypatch):
+    """Neo-Hookean (a logarithm in its stress): 5 trajectories at once in one process, or as 3 + 2 in two."""
+    from lnf.scenes.soft_body import SoftBody
+
+    scene = SoftBody(cells=[2, 1, 1])
+    initial, times = _initial(scene, 5), np.linspace(0.0, 0.05, 3)
+    monkeypatch.setenv(D.WORKERS_ENV, "1")
+    serial = D._simulate(scene, initial, times, "train")
+    monkeypatch.setenv(D.WORKERS_ENV, "2")
+    assert D.simulation_chunks(5)[0] == [slice(0, 3), slice(3, 5)]
+    assert np.array_equal(D._simulate(scene, initial, times, "train"), serial)
+
+
 def test_a_scene_of_ones_own_need_not_be_picklable(monkeypatch):
     """The workers are forked: they inherit the scene, nothing is pickled but the states."""
     scene = ElasticCantilever(mesh=(4, 2))

@@ -170,6 +170,22 @@ def test_collect_copies_a_study_and_the_table_follows_its_summary(tmp_path, monk
     assert "transcribed" not in lines[-1] and "at commit 0123456" in lines[-1]
 
 
+def test_collect_of_a_pareto_study_records_the_body_dimension_its_summary_states(tmp_path, monkeypatch):
+    """The soft body's 32 × 10 × 6 grid: the dimension comes from the study's summary, not from its point count."""
+    study = tmp_path / "outputs" / "studies" / "pareto"
+    study.mkdir(parents=True)
+    (study / "pareto.csv").write_text("sweep,job,method\nwidth,0,lnf\n")
+    (study / "summary.md").write_text("# Pareto study (soft_body, reduced settings)\n\nMachine: x86_64. Command: "
+                                      "`python experiments/pareto.py --scene soft_body`. Body dimension: 3.\n")
+    monkeypatch.setattr(RT, "RESULTS", tmp_path / "results")
+    out = RT.collect("pareto-pendulum", study)
+    prov = json.loads((out / "provenance.json").read_text())
+    assert prov["body_dim"] == 3 and prov["command"] == "python experiments/pareto.py --scene soft_body"
+    (study / "summary.md").write_text("# Pareto study\n\nMachine: x86_64. Command: `python experiments/pareto.py`.\n")
+    with pytest.raises(RT.TableError, match="Body dimension"):
+        RT.collect("pareto-pendulum", study)
+
+
 def test_a_table_of_a_nested_results_file_reads_its_keys_joined_by_slashes(tmp_path, monkeypatch):
     """experiments/scenes.py writes results.json with nested objects ("damped": {...}): a row names them a/b."""
     run = tmp_path / "outputs" / "scenes" / "soft_body"

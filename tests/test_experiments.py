@@ -384,6 +384,15 @@ def test_stability_on_the_vibrating_string_skips_its_high_energy_part_and_says_w
     assert stability.grid_name({"grid.kind": "uniform", "grid.resolution": "8"}, 1) == "8 points"
 
 
+def test_stability_resolution_transfer_keeps_a_3d_body_in_memory():
+    sys.path.insert(0, str(ROOT / "experiments"))
+    import stability
+
+    assert stability.transfer_resolutions(2) == "16,64,128" and stability.transfer_resolutions(1) == "16,64,128"
+    assert max(int(r) for r in stability.transfer_resolutions(3).split(",")) ** 3 <= 32 ** 3
+    assert stability.transfer_resolutions(3, smoke=True) == "8"
+
+
 def test_stability_high_energy_states_per_scene():
     sys.path.insert(0, str(ROOT / "experiments"))
     import numpy as np
