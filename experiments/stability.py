@@ -20,7 +20,8 @@ multiruns of `python -m lnf.evaluate`:
 - resolution transfer: trained on 25 % of 32×32, evaluated on 16², 64², 128² and 4096 random points (a 3-D
   body on 8³, 16³, 32³).
 
-A run that diverges is a data point (marked ×), not a crash. Writes stability.csv, stability.png and
+A run that diverges is a data point (marked ×), not a crash. `--parts` runs some of the four questions only
+(e.g. `--parts high_energy dt`; the others' panels say "not run"). Writes stability.csv, stability.png and
 summary.md into outputs/studies/stability/.
 """
 from __future__ import annotations
@@ -40,6 +41,7 @@ if TYPE_CHECKING:
 INTEGRATORS = {"lnf": ["implicit_midpoint", "rk4"], "latent_mlp": ["rk4"], "pod": ["implicit_midpoint", "rk4"],
                "full_order": ["implicit_midpoint", "rk4"]}
 SHORT = {"implicit_midpoint": "midpoint-4", "rk4": "RK4"}
+PARTS = ("long", "high_energy", "dt", "resolution")  # the study's questions, as `--parts` names them
 
 
 INLINE_STATE_SIZE = 8  # larger full-order states (the elastic mesh) go to lnf.evaluate as .npy files
@@ -95,13 +97,14 @@ def train_all(study: S.Study) -> dict[str, Path]:
     return ckpts
 
 
-def evaluations(study: S.Study, ckpts: dict[str, Path]) -> None:
-    """One multirun per (question, integrator), sweeping the checkpoints of every method that integrator applies to."""
+def evaluations(study: S.Study, ckpts: dict[str, Path], parts: Sequence[str] = PARTS) -> None:
+    """One multirun per (question, integrator), sweeping the checkpoints of every method that integrator applies to;
+    `parts`: the questions of PARTS to ask."""
     smoke = study.mode == "smoke"
     by_path = {str(p): m for m, p in ckpts.items()}
     scene = study.scene_object()
-    cases = stress_cases(study)
-    if cases is None:
+    cases = stress_cases(study) if "high_energy" in parts else None
+    if cases is None and "high_energy" in parts:
         print(f"[{study.name}] {skipped_high_energy(study)}", flush=True)
     expensive = scene.expensive_reference
     before = len(study.rows)
@@ -111,16 +114,17 @@ def evaluations(study: S.Study, ckpts: dict[str, Path]) -> None:
         lab = {"integrator_name": integ}
         # long horizons (20× and 200× the 2.5 s training horizon)
         h20, h200 = ("1.0", "2.0") if smoke else ("50", "500")
-        study.multirun(f"long20_{integ}", [*common, f"horizon={h20}", "dt=0.05", "max_trajectories=4",
-                                           "grid.kind=uniform", "grid.resolution=32"], "lnf.evaluate",
-                       {**lab, "study": "long", "horizon_factor": 20})
-        if not smoke and expensive:  # energy drift of 10 000 steps: no 500 s full-order reference per job
-            study.multirun(f"long200_{integ}", [*common, "long_steps=10000", "long_trajectories=4"], "lnf.evaluate",
-                           {**lab, "study": "long", "horizon_factor": 200})
-        elif not smoke:
-            study.multirun(f"long200_{integ}", [*common, f"horizon={h200}", "dt=0.5", "integrator.substeps=10",
-                                                "max_trajectories=4", "grid.kind=uniform", "grid.resolution=32"],
-                           "lnf.evaluate", {**lab, "study": "long", "horizon_factor": 200})
+        if "long" in parts:
+            study.multirun(f"long20_{integ}", [*common, f"horizon={h20}", "dt=0.05", "max_trajectories=4",
+                                               "grid.kind=uniform", "grid.resolution=32"], "lnf.evaluate",
+                           {**lab, "study": "long", "horizon_factor": 20})
+            if not smoke and expensive:  # energy drift of 10 000 steps: no 500 s full-order reference per job
+                study.multirun(f"long200_{integ}", [*common, "long_steps=10000", "long_trajectories=4"], "lnf.evaluate",
+                               {**lab, "study": "long", "horizon_factor": 200})
+            elif not smoke:
+                study.multirun(f"long200_{integ}", [*common, f"horizon={h200}", "dt=0.5", "integrator.substeps=10",
+                                                    "max_trajectories=4", "grid.kind=uniform", "grid.resolution=32"],
+                               "lnf.evaluate", {**lab, "study": "long", "horizon_factor": 200})
         # high energy and beyond the training range
         if cases is not None:
             levels = cases.levels[:2] if smoke else cases.levels
@@ -135,11 +139,12 @@ def evaluations(study: S.Study, ckpts: dict[str, Path]) -> None:
                                                      + "]]"], "lnf.evaluate", {**lab, "study": "rotation"})
         # large time steps
         dts = "0.05,0.2" if smoke else "0.05,0.1,0.2,0.4,0.8"
-        study.multirun(f"dt_{integ}", [*common, f"dt={dts}", f"max_trajectories={2 if smoke else 8}"], "lnf.evaluate",
-                       {**lab, "study": "dt"})
+        if "dt" in parts:
+            study.multirun(f"dt_{integ}", [*common, f"dt={dts}", f"max_trajectories={2 if smoke else 8}"],
+                           "lnf.evaluate", {**lab, "study": "dt"})
         # resolution transfer, with each method's first integrator
         own = ",".join(str(ckpts[m]) for m in ckpts if INTEGRATORS[m][0] == integ)
-        if own:
+        if own and "resolution" in parts:
             res = transfer_resolutions(scene.body_dim, smoke)
             base = [f"ckpt_path={own}", "figures=0", f"threads={study.threads}", f"integrator={integ}"]
             study.multirun(f"grid_{integ}", [*base, "grid.kind=uniform", f"grid.resolution={res}"], "lnf.evaluate",
@@ -241,7 +246,15 @@ def _horizon_text(rows: list[dict], factor: int) -> str:
     return f"{factor}× the training horizon"
 
 
-def plot(study: S.Study, rows: list[dict]) -> Path:
+def _say_not_run(ax, part: str) -> None:
+    """An empty panel for a question `--parts` left out, saying so."""
+    ax.text(0.5, 0.5, f"not run (--parts without {part})", ha="center", va="center", transform=ax.transAxes,
+            fontsize=10)
+    ax.set_xticks([])
+    ax.set_yticks([])
+
+
+def plot(study: S.Study, rows: list[dict], parts: Sequence[str] = PARTS) -> Path:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -272,10 +285,14 @@ def plot(study: S.Study, rows: list[dict]) -> Path:
     ax.set_yscale("log")
     ax.set_ylabel(S.metric_label("energy_drift/max", over=f"{n_long} trajectories", wrap=True))
     ax.set_title("Long horizons", fontsize=10)
+    if "long" not in parts:
+        _say_not_run(ax, "long")
 
     ax = axes[0, 1]
     cases = stress_cases(study)
-    if cases is not None:
+    if "high_energy" not in parts:
+        _say_not_run(ax, "high_energy")
+    elif cases is not None:
         levels = [_level(r) for r in rows if r.get("study") == "high_energy"]
         span = (max(levels) - min(levels)) if len(levels) > 1 else 1.0
         error_lines(ax, rows, combos, "high_energy", _level)
@@ -303,6 +320,8 @@ def plot(study: S.Study, rows: list[dict]) -> Path:
     ax.set_xlabel(S.metric_label("dt"))
     ax.set_ylabel(S.metric_label("field_rel_l2/all/median", split=f"{n_dt} test trajectories", wrap=True))
     ax.set_title("Large time steps (× = diverged in ≥ 1 trajectory)", fontsize=10)
+    if "dt" not in parts:
+        _say_not_run(ax, "dt")
 
     ax = axes[1, 1]
     labels: list[str] = []
@@ -326,6 +345,8 @@ def plot(study: S.Study, rows: list[dict]) -> Path:
     ax.set_xlabel("evaluation points (not seen in training)")
     ax.set_ylabel(S.metric_label("field_rel_l2/all/median", wrap=True))
     ax.set_title("Resolution transfer", fontsize=10)
+    if "resolution" not in parts:
+        _say_not_run(ax, "resolution")
     for ax in axes.ravel():
         ax.grid(True, which="major", alpha=0.35)
         ax.grid(True, which="minor", alpha=0.12)
@@ -335,15 +356,15 @@ def plot(study: S.Study, rows: list[dict]) -> Path:
                for m, i in combos]
     handles.append(Line2D([], [], marker="X", color="0.5", markeredgecolor="k", ls="none", markersize=8,
                           label="diverged (drawn at 10)"))
-    if cases is not None:
+    if cases is not None and "high_energy" in parts:
         handles.append(Patch(color="0.9", label=cases.train_text))
     fig.legend(handles=handles, loc="outside lower center", ncols=4, fontsize="small", frameon=False)
     fig.suptitle(f"Stability, {study.scene} ({S.DODGE_NOTE})\n{S.caption(study)}", fontsize=9)
     return S.save_figure(fig, study.out / "stability.png")
 
 
-def summary(study: S.Study, rows: list[dict]) -> Path:
-    cases = stress_cases(study)
+def summary(study: S.Study, rows: list[dict], parts: Sequence[str] = PARTS) -> Path:
+    cases = stress_cases(study) if "high_energy" in parts else None
     expensive = study.scene_object().expensive_reference
     levels = sorted({_level(r) for r in rows if r.get("study") == "high_energy"})  # smoke runs the first two only
     highest = f"{levels[-1]:g}: {cases.xlabel}" if cases and levels else "none"
@@ -382,9 +403,12 @@ def summary(study: S.Study, rows: list[dict]) -> Path:
                ("vpt20", "vpt 20× [s]"), ("drift200", "energy drift 200×"), ("vpt200", "vpt 200× [s]")]
     if cases is not None:  # without release cases the high-energy columns would stay empty
         columns += [("err_099", f"err at the highest level ({highest})"), ("err_rot", "err rotation")]
-    skipped = "" if cases else skipped_high_energy(study)
+    skipped = "" if cases or "high_energy" not in parts else skipped_high_energy(study)
+    only = "" if tuple(parts) == PARTS else f" --parts {' '.join(parts)}"
+    left_out = [p for p in PARTS if p not in parts]
     text = [f"# Stability study ({study.scene}, {study.mode} settings)\n\n",
-            f"Machine: {study.machine()}. Command: `{study.command()}`.\n\n",
+            f"Machine: {study.machine()}. Command: `{study.command()}{only}`.\n\n",
+            f"Not run (`--parts`): {', '.join(left_out)}; their columns are empty.\n\n" if left_out else "",
             f"{skipped[:1].upper()}{skipped[1:]}.\n\n" if skipped else "",
             S.markdown_table(table, columns + [("max_dt", "largest ok dt [s]")]),
             "\nResolution transfer (field_rel_l2, all, median):\n\n",
@@ -392,11 +416,17 @@ def summary(study: S.Study, rows: list[dict]) -> Path:
     return S.write_text_atomic(study.out / "summary.md", "".join(text))
 
 
+def _parts_option(p) -> None:
+    p.add_argument("--parts", nargs="+", choices=PARTS, default=list(PARTS), metavar="PART",
+                   help=f"the questions to ask, any of {', '.join(PARTS)} (default: all)")
+
+
 def main(argv=None) -> None:
-    study, _ = S.parse_args("stability", __doc__, argv)
-    evaluations(study, train_all(study))
+    study, args = S.parse_args("stability", __doc__, argv, extra=_parts_option)
+    parts = tuple(p for p in PARTS if p in args.parts)
+    evaluations(study, train_all(study), parts)
     csv_path = study.write_csv("stability.csv")
-    study.finish([csv_path, plot(study, study.rows), summary(study, study.rows)])
+    study.finish([csv_path, plot(study, study.rows, parts), summary(study, study.rows, parts)])
 
 
 if __name__ == "__main__":
