@@ -72,7 +72,9 @@ class Spec:
         summary chooses it); ``study``: the ``table``-th Markdown table of the study's ``summary.md`` (the study's
         own reduction of its CSV, which is copied beside it); ``metrics``: rows ``metrics`` (label, key) of a
         run's ``metrics.json`` (or of the JSON file ``file``, nested keys joined by ``/``: e.g. ``results.json`` of
-        ``experiments/scenes.py``); ``transcribed``: no raw outputs known, ``table.csv`` only.
+        ``experiments/scenes.py``); ``stack``: one row per table of ``parts`` (label, table name), the rows of
+        each one's study CSV where column ``where[0]`` is ``where[1]``, cells ``columns`` (header, key); its
+        provenance is that of the parts; ``transcribed``: no raw outputs known, ``table.csv`` only.
     raw: the folder of the raw outputs, relative to the repository (None: given on the command line, or none).
     command: the command that makes them.
     """
@@ -84,6 +86,9 @@ class Spec:
     csv: Optional[str] = None
     metrics: tuple[tuple[str, str], ...] = ()
     file: str = "metrics.json"
+    parts: tuple[tuple[str, str], ...] = ()
+    columns: tuple[tuple[str, str], ...] = ()
+    where: tuple[str, str] = ("", "")
 
 
 SCENES = ["pendulum", "double_pendulum", "bump", "elastic", "elastic_actuated", "soft_body"]
@@ -155,7 +160,13 @@ SPECS: dict[str, Spec] = {
     "model_size-elastic": _study("model_size", "elastic"),
     "model_size-soft_body": _study("model_size", "soft_body"),
     "cost_scaling-pendulum": _study("cost_scaling", "pendulum"),
-    "roofline-pendulum": _study("roofline", "pendulum"),
+    **{f"roofline-{s}": _study("roofline", s) for s in SCENES},
+    "roofline-defaults": Spec("stack", "python experiments/roofline.py --scene <scene>",
+                              parts=tuple((s.replace("_", " "), f"roofline-{s}") for s in SCENES),
+                              where=("default", "True"), columns=(
+        ("SIREN width", "width"), ("trajectories", "batch"), ("quadrature points", "points"),
+        ("FLOPs per step", "flops"), ("ms per RK4 step", "ms"), ("× the bound", "ratio"),
+        ("matmul peak, same run [GFLOP/s]", "matmul_peak_gflops"))),
     "pendulum_default": Spec("metrics", "python -m lnf.train +experiment=pendulum", metrics=PENDULUM_METRICS),
     "soft_body_default": Spec("metrics", "python -m lnf.train +experiment=soft_body", metrics=SCENE_METRICS),
     "soft_body_scenes": Spec("metrics", "python experiments/scenes.py --scene soft_body --measure speedup shape damped",
@@ -251,7 +262,10 @@ def provenance_line(name: str, prov: dict[str, Any], spec: Spec) -> str:
     if prov.get("note"):
         note = prov["note"].rstrip(".")
         text += f" {note[:1].upper()}{note[1:]}."
-    text += f" Source: `results/{name}/`"
+    if spec.kind == "stack":
+        text += " Sources: " + ", ".join(f"`results/{part}/`" for _, part in spec.parts)
+    else:
+        text += f" Source: `results/{name}/`"
     if prov.get("transcribed_from_docs"):
         rerun = f"rerun `{commands[0]}`" if len(commands) == 1 else "rerun the commands above"
         if spec.kind == "transcribed":
@@ -314,8 +328,41 @@ def _pareto_rows(folder: Path, prov: dict[str, Any]) -> tuple[list[str], list[li
     return header, [[r["label"], r["setting"], *(fmt(r.get(k)) for k in keys)] for r in best]
 
 
+def _stacked(spec: Spec) -> tuple[list[str], list[list[str]], dict[str, Any]]:
+    """A stack's rows, one block per part, and the provenance its parts share (their dates, commands, commits)."""
+    rows, provs = [], []
+    for label, part in spec.parts:
+        folder = RESULTS / part
+        prov = _read_json(folder / "provenance.json")
+        path = folder / (SPECS[part].csv or "")
+        if not path.is_file():
+            raise TableError(f"results/{part}/{path.name}: missing (table stack lists {part!r})")
+        found = [r for r in read_study_csv(path) if str(r.get(spec.where[0])) == spec.where[1]]
+        if not found:
+            raise TableError(f"results/{part}/{path.name}: no row with {spec.where[0]} = {spec.where[1]}")
+        for r in found:
+            r.setdefault("ms", float(r["seconds"]) * 1e3 if "seconds" in r else None)
+            rows.append([label, *(fmt(r.get(key)) for _, key in spec.columns)])
+        provs.append(prov)
+
+    def joined(key: str) -> Optional[str]:
+        values = list(dict.fromkeys(str(p[key]) for p in provs if p.get(key)))
+        return ", ".join(values) if values else None
+
+    commands = list(dict.fromkeys(c for p in provs for c in ([p["command"]] if isinstance(p.get("command"), str)
+                                                              else p.get("command") or [])))
+    prov = {"machine": joined("machine"), "date": joined("date"), "command": commands or spec.command,
+            "commit": joined("commit"), "note": "one row per study, each divided by the matmul peak of its own run",
+            "transcribed_from_docs": any(p.get("transcribed_from_docs") for p in provs)}
+    return ["scene", *(h for h, _ in spec.columns)], rows, prov
+
+
 def table_of(name: str) -> tuple[list[str], list[list[str]], dict[str, Any], Spec]:
-    """(header, rows, provenance, spec) of table `name` from results/<name>/."""
+    """(header, rows, provenance, spec) of table `name` from results/<name>/ (a stack: from its parts' folders)."""
+    spec = SPECS.get(name)
+    if spec is not None and spec.kind == "stack":
+        header, rows, prov = _stacked(spec)
+        return header, rows, prov, spec
     folder = RESULTS / name
     if not folder.is_dir():
         raise TableError(f"results/{name}/: no such folder (a marker names table {name!r}, which has no sources)")
@@ -388,6 +435,8 @@ def rebuild(text: str, where: str, used: Optional[dict[str, list[str]]] = None) 
         out.append(f"{indent}{end}")
         if used is not None:
             used.setdefault(name, []).append(where)
+            for _, part in SPECS[name].parts if name in SPECS else ():
+                used.setdefault(part, []).append(f"{where} (in {name})")
         i = j + 1
     return "\n".join(out)
 
@@ -533,8 +582,7 @@ def main(argv: Optional[list[str]] = None) -> int:
             for path in markdown_files():
                 rebuild(path.read_text(), path.relative_to(ROOT).as_posix(), used)
             for name in sorted(used):
-                prov = _read_json(RESULTS / name / "provenance.json")
-                spec = spec_of(name, prov)
+                _, _, prov, spec = table_of(name)
                 state = "transcribed" if prov.get("transcribed_from_docs") else f"from raw ({spec.kind})"
                 print(f"{name:34s} {state:22s} raw: {spec.raw or '-':42s} in: {', '.join(used[name])}")
             return 0

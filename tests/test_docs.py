@@ -202,3 +202,31 @@ def test_a_table_of_a_nested_results_file_reads_its_keys_joined_by_slashes(tmp_p
     assert (out / "results.json").is_file()
     lines = RT.render("x_scenes")
     assert lines[:4] == ["| metric | value |", "|---|---|", "| speed-up | 536 |", "| error · α | 0.021 · 0.5 |"]
+
+
+def test_a_stacked_table_takes_the_marked_row_of_each_study_and_their_provenance(tmp_path, monkeypatch):
+    """roofline-defaults: the default configuration's row of each scene's roofline.csv, one table."""
+    results = tmp_path / "results"
+    for scene, ms, commit in [("a", 0.0279, "0123456"), ("b", 0.0457, "0123456")]:
+        folder = results / f"roofline-{scene}"
+        folder.mkdir(parents=True)
+        (folder / "roofline.csv").write_text(f"method,width,seconds,ratio,default\nlnf,64,0.5,9.0,False\n"
+                                             f"lnf,256,{ms},2.6,True\n")
+        (folder / "provenance.json").write_text(json.dumps({"machine": "m", "date": "2026-12-03", "commit": commit,
+                                                            "command": f"python experiments/roofline.py --scene {scene}",
+                                                            "transcribed_from_docs": False}))
+    monkeypatch.setattr(RT, "RESULTS", results)
+    for scene in "ab":
+        monkeypatch.setitem(RT.SPECS, f"roofline-{scene}", RT.Spec("study", "x", csv="roofline.csv"))
+    monkeypatch.setitem(RT.SPECS, "stack", RT.Spec("stack", "x", parts=(("A", "roofline-a"), ("B", "roofline-b")),
+                                                   where=("default", "True"),
+                                                   columns=(("width", "width"), ("ms", "ms"), ("× bound", "ratio"))))
+    lines = RT.render("stack")
+    assert lines[:4] == ["| scene | width | ms | × bound |", "|---|---|---|---|", "| A | 256 | 27.9 | 2.6 |",
+                         "| B | 256 | 45.7 | 2.6 |"]
+    assert "2026-12-03" in lines[-1] and "at commit 0123456." in lines[-1]
+    assert "--scene a`; `python experiments/roofline.py --scene b`" in lines[-1]
+    assert "Sources: `results/roofline-a/`, `results/roofline-b/`" in lines[-1]
+    (results / "roofline-b" / "roofline.csv").write_text("method,width,seconds,ratio,default\nlnf,64,0.5,9.0,False\n")
+    with pytest.raises(RT.TableError, match="roofline-b/roofline.csv: no row with default = True"):
+        RT.render("stack")
