@@ -19,11 +19,14 @@ It then separates the two sources of a wrong reduced frequency:
 - the curve's tangent at rest: its Rayleigh quotient under the FEM's tangent stiffness K_t (Rayleigh–Ritz: any
   error in the tangent raises the frequency, by the error's share of the strain energy) against the FEM's
   first mode, with that error's share of mass and of strain energy and where along X₁ it lies.
-Prints only; every number is measured in the run.
+Every number is measured in the run. --oracle and --content also write their table (summary.md, with the machine
+and the command) and their numbers (oracle.json, content.json) into <--out>/oracle/ and <--out>/content/ (default
+outputs/elastic_diagnostics/), which `experiments/results_tables.py --collect` copies into results/.
 """
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from pathlib import Path
 
@@ -284,6 +287,47 @@ def embedding_pullback(model, points, fields, states, train_times: int, dt: floa
     return out
 
 
+CURVES = {1: "linear (one POD mode, POD-Galerkin)", 2: "quadratic", 3: "cubic"}
+
+
+def write_report(folder: Path, name: str, numbers: dict, title: str, table: list[str], argv: list[str]) -> None:
+    """`folder`/summary.md (title, machine, command, the table) and `folder`/<name>.json, each written atomically."""
+    import json
+    import platform
+
+    from lnf.tempfiles import write_text_atomic
+
+    folder.mkdir(parents=True, exist_ok=True)
+    command = " ".join(["python experiments/elastic_diagnostics.py", *argv])
+    write_text_atomic(folder / f"{name}.json", json.dumps(numbers, indent=1) + "\n")
+    write_text_atomic(folder / "summary.md", f"# {title}\n\nMachine: {platform.platform()}, {os.cpu_count()} CPUs. "
+                                             f"Command: `{command}`.\n\n" + "\n".join(table) + "\n")
+    print(f"wrote {folder / 'summary.md'}")
+
+
+def oracle_table(results: dict[int, dict[str, float]]) -> list[str]:
+    rows = ["| curve | rollout error in the horizon, median (max) | projection onto the curve, median |", "|---|---|---|"]
+    for degree, r in results.items():
+        rows.append(f"| {CURVES[degree]} | {r['rollout error in the horizon, median']:.3g} "
+                    f"({r['rollout error in the horizon, max']:.3g}) | {r['projection onto the curve, median']:.3g} |")
+    return rows
+
+
+def content_table(results: dict[str, dict[str, object]]) -> list[str]:
+    def first(values: object, k: int = 3) -> str:
+        return " / ".join(f"{float(x):.2g}" for x in np.asarray(values)[:k])
+
+    rows = ["| release | displacement outside 1 / 2 / 3 POD modes | velocity outside 1 / 2 / 3 POD modes | outside a cubic "
+            "1-D manifold (displacement / velocity) |", "|---|---|---|---|"]
+    for release, r in results.items():
+        rows.append(f"| `{release}`{' (the default)' if release == 'modal' else ''} | "
+                    f"{first(r['displacement: share outside k POD modes (k = 1…6)'])} | "
+                    f"{first(r['velocity: share outside k POD modes (k = 1…6)'])} | "
+                    f"{float(r['displacement outside a cubic 1-D manifold']):.2g} / "
+                    f"{float(r['velocity outside its tangent space (1-D)']):.2g} |")
+    return rows
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--content", action="store_true", help="low-dimensionality of the two releases")
@@ -292,22 +336,37 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--ckpt", type=Path, default=None, help="a trained elastic checkpoint to diagnose")
     parser.add_argument("--oracle", action="store_true",
                         help="the FEM Lagrangian pulled back through a fitted curve: what d = 1 can reach")
-    parser.add_argument("--degree", type=int, default=3, choices=[1, 2, 3], help="--oracle: degree of the curve")
+    parser.add_argument("--degree", type=int, nargs="+", default=[3], choices=[1, 2, 3],
+                        help="--oracle: degrees of the curve (e.g. 1 2 3)")
+    parser.add_argument("--out", type=Path, default=ROOT / "outputs" / "elastic_diagnostics",
+                        help="--oracle/--content: folder of their reports (oracle/, content/)")
     args = parser.parse_args(argv)
+    given = list(sys.argv[1:] if argv is None else argv)
     if not args.content and args.ckpt is None and not args.oracle:
         parser.error("give --content, --oracle and/or --ckpt")
+    extra = {"mesh": args.mesh} if args.mesh else {}
     if args.oracle:
-        extra = {"mesh": args.mesh} if args.mesh else {}
-        print(f"oracle d = 1 reduction (degree-{args.degree} curve over the first POD coordinate, exact FEM "
-              f"Lagrangian), {args.runs} training and {args.runs} test runs, 2.5 s:")
-        for key, value in oracle(args.runs, degree=args.degree, **extra).items():
-            print(f"  {key}: {value:.4f}")
+        found = {}
+        for degree in sorted(set(args.degree)):
+            print(f"oracle d = 1 reduction (degree-{degree} curve over the first POD coordinate, exact FEM "
+                  f"Lagrangian), {args.runs} training and {args.runs} test runs, 2.5 s:")
+            found[degree] = oracle(args.runs, degree=degree, **extra)
+            for key, value in found[degree].items():
+                print(f"  {key}: {value:.4f}")
+        write_report(args.out / "oracle", "oracle", {str(k): v for k, v in found.items()},
+                     f"What one coordinate can reach on the elastic cantilever ({args.runs} + {args.runs} FEM runs)",
+                     oracle_table(found), given)
     if args.content:
+        found = {}
         for release in ("shape", "modal"):
             print(f"release = {release!r} ({args.runs} runs, 5 s):")
-            extra = {"mesh": args.mesh} if args.mesh else {}
-            for key, value in content(release, args.runs, **extra).items():
+            found[release] = content(release, args.runs, **extra)
+            for key, value in found[release].items():
                 print(f"  {key}: {np.round(value, 4)}")
+        write_report(args.out / "content", "content",
+                     {r: {k: np.asarray(v).tolist() for k, v in d.items()} for r, d in found.items()},
+                     f"How low-dimensional the two releases are ({args.runs} FEM runs of 5 s each)",
+                     content_table(found), given)
     if args.ckpt is not None:
         if not args.ckpt.is_file():
             raise SystemExit(f"no checkpoint at {args.ckpt}")

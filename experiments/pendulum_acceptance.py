@@ -1,4 +1,4 @@
-"""Issue-2 acceptance benchmark: the default pendulum experiment, end to end, plus a 10 000-step energy check.
+"""Acceptance benchmark: the default pendulum experiment, end to end, plus a 10 000-step energy check.
 
 1. runs ``python -m lnf.train +experiment=pendulum`` (defaults; a fresh data dir, so data generation is
    included) and measures its wall-clock;
@@ -88,7 +88,11 @@ def main() -> None:
           f"vpt median {metrics['vpt/median']:.3g} s, rollout {metrics['rollout_seconds_per_trajectory'] * 1e3:.1f} ms/trajectory, "
           f"long rollout {long['energy_drift_long/seconds']:.1f} s")
     out = {"train_wall_seconds": train_wall, **metrics, **long, "passed": bool(ok_all)}
-    (run_dir / "acceptance.json").write_text(json.dumps(out, indent=2))
+    from lnf.tempfiles import write_text_atomic
+
+    write_text_atomic(run_dir / "acceptance.json", json.dumps(out, indent=2))
+    print(f"wrote {run_dir / 'acceptance.json'} (python experiments/results_tables.py --collect "
+          f"pendulum_acceptance={run_dir} pendulum_default={run_dir} puts it in the docs)")
     sys.exit(0 if ok_all else 1)
 
 

@@ -14,7 +14,7 @@ the cgroup's peak usage, the loader's throughput alone and the training throughp
     python experiments/streaming.py --gib 0.3 --limit-gib 0.2 --steps 5     # smoke
 
 Needs a writable memory cgroup (v2 ``/sys/fs/cgroup`` or v1 ``/sys/fs/cgroup/memory``, usually root);
-without one it says so and exits. Writes outputs/streaming/results.json.
+without one it says so and exits. Writes outputs/streaming/results.json and summary.md (the table of the docs).
 """
 from __future__ import annotations
 
@@ -148,6 +148,43 @@ def child(args: argparse.Namespace) -> None:
 # ---------------------------------------------------------------------------------------------------
 # the parent
 # ---------------------------------------------------------------------------------------------------
+def run_label(row: dict[str, Any], limit_gib: float) -> str:
+    """'streaming, 2 DataLoader workers, 1.5 GiB limit', 'in memory, no limit (the baseline, same run)'."""
+    parts = ["streaming" if row["mode"] == "lazy" else "in memory"]
+    parts += [f"{row['workers']} DataLoader workers"] if row["workers"] else []
+    parts += [f"{limit_gib:g} GiB limit"] if row["limit_bytes"] else ["no limit (the baseline, same run)"]
+    return ", ".join(parts)
+
+
+def summary_text(result: dict[str, Any], limit_gib: float, command: str) -> str:
+    """The run's table in Markdown, with the machine and the command (what results_tables.py reads)."""
+    gib = 2 ** 30
+    gen = result["generation"]
+    def thousands(x: float) -> str:  # 1 935, as the docs print it
+        return f"{x:,.0f}".replace(",", " ")
+
+    head = (f"run ({result['dataset_bytes'] / gib:.2f} GiB dataset: {thousands(result['n_train'])} training "
+            f"trajectories × {gen['n_times']} samples × {gen['coarse_resolution']}² points)")
+    lines = [f"| {head} | peak RSS | cgroup peak | loader alone [snapshots/s] | training [snapshots/s] | "
+             "training vs in-memory |", "|---|---|---|---|---|---|"]
+    for row in result["runs"]:
+        label = run_label(row, limit_gib)
+        if "error" in row:
+            why = "killed by the OOM killer" if row["returncode"] == -9 else "failed"
+            lines.append(f"| {label} | {why} after {row['wall_seconds']:.0f} s |  |  |  |  |")
+            continue
+        rss = f"{(row['peak_rss_bytes'] + row['worker_peak_rss_bytes']) / gib:.2f} GiB"
+        rss += " (process + workers)" if row["workers"] else ""
+        cgroup = f"{row['cgroup_peak_bytes'] / gib:.2f} GiB" if row["cgroup_peak_bytes"] else ""
+        ratio = f"{row['train_rate_vs_in_memory']:.2f}" if "train_rate_vs_in_memory" in row else ""
+        lines.append(f"| {label} | {rss} | {cgroup} | {thousands(row['loader_snapshots_per_s'])} | "
+                     f"{row['train_snapshots_per_s']:.1f} | {ratio} |")
+    machine = result["machine"]
+    return (f"# Training from a dataset larger than the memory limit\n\nMachine: {machine['platform']}, "
+            f"{machine['cpus']} CPUs. Command: `{command}`.\n\n{result['steps']} timed steps at batch "
+            f"{result['batch_size']} per run, after warm-up steps; the limit is a memory cgroup (page cache "
+            f"included).\n\n" + "\n".join(lines) + "\n")
+
 def make_dataset(gib: float, data_dir: Path) -> tuple[Path, int]:
     from lnf.dataset import DatasetConfig, ensure_dataset
     from lnf.scenes import LiftedPendulum
@@ -232,10 +269,12 @@ def main() -> None:
               "limit_bytes": limit, "steps": args.steps, "batch_size": args.batch_size, "runs": rows,
               "machine": {"platform": platform.platform(), "processor": platform.processor(), "cpus": os.cpu_count()},
               "date": time.strftime("%Y-%m-%d")}
+    from lnf.tempfiles import write_text_atomic
+
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = args.out.with_name(args.out.name + ".tmp")
-    tmp.write_text(json.dumps(result, indent=2))
-    os.replace(tmp, args.out)
+    write_text_atomic(args.out, json.dumps(result, indent=2))
+    command = " ".join(["python experiments/streaming.py", *sys.argv[1:]])
+    write_text_atomic(args.out.with_name("summary.md"), summary_text(result, args.limit_gib, command))
     print(f"\ndataset {path.stat().st_size / 2 ** 30:.2f} GiB, limit {args.limit_gib:g} GiB (cgroup, page cache included)")
     print(f"{'run':34s} {'peak RSS':>9s} {'cgroup':>8s} {'loader/s':>9s} {'train/s':>8s} {'vs in-mem':>9s}")
     for row in rows:

@@ -518,9 +518,17 @@ def test_scenes_script_measures_a_tiny_elastic_checkpoint(scene, tmp_path):
 def test_elastic_diagnostics_smoke(tmp_path):
     """Content of both releases on a tiny mesh, and the energy, gradient, curve and tangent diagnostics of a tiny
     checkpoint."""
-    out = _run(["experiments/elastic_diagnostics.py", "--content", "--oracle", "--runs", "2", "--mesh", "6", "3"]).stdout
+    reports = tmp_path / "reports"
+    out = _run(["experiments/elastic_diagnostics.py", "--content", "--oracle", "--degree", "1", "2", "--runs", "2",
+                "--mesh", "6", "3", "--out", str(reports)]).stdout
     assert "release = 'shape'" in out and "release = 'modal'" in out and "cubic 2-D manifold" in out
     assert "oracle d = 1 reduction" in out and "rollout error in the horizon, median" in out
+    oracle = (reports / "oracle" / "summary.md").read_text()  # the tables results_tables.py shows
+    assert "Command: `python experiments/elastic_diagnostics.py --content --oracle --degree 1 2" in oracle
+    assert "| linear (one POD mode, POD-Galerkin) |" in oracle and "| quadratic |" in oracle
+    assert set(json.loads((reports / "oracle" / "oracle.json").read_text())) == {"1", "2"}
+    content = (reports / "content" / "summary.md").read_text()
+    assert "| `shape` |" in content and "| `modal` (the default) |" in content
     run = tmp_path / "run"
     _run(["-m", "lnf.train", "+experiment=elastic", "trainer=smoke", "logger=csv", "scene.mesh=[6,3]",
           "data.n_train=2", "data.n_val=1", "data.n_test=1", "data.n_times=8", "data.train_times=4",
@@ -550,6 +558,10 @@ def test_streaming_benchmark_smoke(tmp_path):
     lazy, baseline = runs[("lazy", 0, True)], runs[("in_memory", 0, False)]
     assert lazy["returncode"] == 0 and lazy["train_snapshots_per_s"] > 0 and lazy["peak_rss_bytes"] > 0
     assert baseline["train_rate_vs_in_memory"] == 1.0 and lazy["limit_bytes"] == int(1.5 * 2 ** 30)
+    summary = (tmp_path / "summary.md").read_text()  # the table results_tables.py shows in docs/scaling.md
+    assert "Command: `python experiments/streaming.py --gib 0.02" in summary and "Machine: " in summary
+    assert "| streaming, 1.5 GiB limit |" in summary and "| in memory, no limit (the baseline, same run) |" in summary
+    assert summary.rstrip().endswith("| 1.00 |")
 
 
 def test_baselines_drop_the_neural_settings_of_a_scene_experiment():
