@@ -81,6 +81,9 @@ def plot(study: S.Study, rows: list[dict], others: list[dict], target: float, ch
     ax.set_ylabel(S.metric_label(ERR, wrap=True))
     S.log_axes(ax, x_base=2, legend="none")
     S.ticks_at(ax, [r["model.width"] for r in rows], fmt=lambda v: f"{v:g}")
+    seen = sorted({int(r["model.width"]) for r in rows})
+    if len(seen) == 1:  # one width: an octave either side, so the dodge stays small against the axis
+        ax.set_xlim(seen[0] / 2, seen[0] * 2)
     ax.set_title(f"Model size, {study.scene} ({study.mode} settings)", fontsize=10)
     S.legend_outside(ax, "below", ncols=2)
     return S.save_figure(fig, study.out / "model_size.png")

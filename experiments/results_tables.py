@@ -242,6 +242,8 @@ def fmt(value: Any, digits: int = 3) -> str:
         return "diverged"
     if isinstance(value, int) or (isinstance(value, str) and re.fullmatch(r"-?\d+", value.strip())):
         return str(int(x))
+    if 1e3 <= abs(x) < 1e6:  # 1 052, not 1.05e+03
+        return f"{x:,.0f}".replace(",", " ")
     return f"{x:.{digits}g}"
 
 
