@@ -73,8 +73,8 @@ class Spec:
         own reduction of its CSV, which is copied beside it); ``metrics``: rows ``metrics`` (label, key) of a
         run's ``metrics.json`` (or of the JSON file ``file``, nested keys joined by ``/``: e.g. ``results.json`` of
         ``experiments/scenes.py``); ``stack``: one row per table of ``parts`` (label, table name), the rows of
-        each one's study CSV where column ``where[0]`` is ``where[1]``, cells ``columns`` (header, key); its
-        provenance is that of the parts; ``transcribed``: no raw outputs known, ``table.csv`` only.
+        each one's study CSV where column ``where[0]`` is ``where[1]``, cells ``columns`` (header, key, and
+        optionally a factor the value is multiplied by: seconds → ms); its provenance is that of the parts; ``transcribed``: no raw outputs known, ``table.csv`` only.
     raw: the folder of the raw outputs, relative to the repository (None: given on the command line, or none).
     command: the command that makes them.
     """
@@ -87,7 +87,7 @@ class Spec:
     metrics: tuple[tuple[str, str], ...] = ()
     file: str = "metrics.json"
     parts: tuple[tuple[str, str], ...] = ()
-    columns: tuple[tuple[str, str], ...] = ()
+    columns: tuple[tuple[Any, ...], ...] = ()  # (header, key) or (header, key, factor)
     where: tuple[str, str] = ("", "")
 
 
@@ -166,7 +166,7 @@ SPECS: dict[str, Spec] = {
                               parts=tuple((s.replace("_", " "), f"roofline-{s}") for s in SCENES),
                               where=("default", "True"), columns=(
         ("SIREN width", "width"), ("trajectories", "batch"), ("quadrature points", "points"),
-        ("FLOPs per step", "flops"), ("ms per RK4 step", "ms"), ("× the bound", "ratio"),
+        ("FLOPs per step", "flops"), ("ms per RK4 step", "seconds", 1e3), ("× the bound", "ratio"),
         ("matmul peak, same run [GFLOP/s]", "matmul_peak_gflops"))),
     "pendulum_default": Spec("metrics", "python -m lnf.train +experiment=pendulum", metrics=PENDULUM_METRICS),
     "pendulum_acceptance": Spec("metrics", "python experiments/pendulum_acceptance.py", file="acceptance.json", metrics=(
@@ -351,6 +351,11 @@ def _pareto_rows(folder: Path, prov: dict[str, Any]) -> tuple[list[str], list[li
     return header, [[r["label"], r["setting"], *(fmt(r.get(k)) for k in keys)] for r in best]
 
 
+def _scaled(value: Any, factor: list[float]) -> Any:
+    """`value` × factor[0] when a factor is given and the value is a number; otherwise `value` as it is."""
+    return value * factor[0] if factor and isinstance(value, (int, float)) else value
+
+
 def _stacked(spec: Spec) -> tuple[list[str], list[list[str]], dict[str, Any]]:
     """A stack's rows, one block per part, and the provenance its parts share (their dates, commands, commits)."""
     rows, provs = [], []
@@ -364,8 +369,7 @@ def _stacked(spec: Spec) -> tuple[list[str], list[list[str]], dict[str, Any]]:
         if not found:
             raise TableError(f"results/{part}/{path.name}: no row with {spec.where[0]} = {spec.where[1]}")
         for r in found:
-            r.setdefault("ms", float(r["seconds"]) * 1e3 if "seconds" in r else None)
-            rows.append([label, *(fmt(r.get(key)) for _, key in spec.columns)])
+            rows.append([label, *(fmt(_scaled(r.get(key), factor)) for _, key, *factor in spec.columns)])
         provs.append(prov)
 
     def joined(key: str) -> Optional[str]:
@@ -377,7 +381,7 @@ def _stacked(spec: Spec) -> tuple[list[str], list[list[str]], dict[str, Any]]:
     prov = {"machine": joined("machine"), "date": joined("date"), "command": commands or spec.command,
             "commit": joined("commit"), "note": "one row per study, each divided by the matmul peak of its own run",
             "transcribed_from_docs": any(p.get("transcribed_from_docs") for p in provs)}
-    return ["scene", *(h for h, _ in spec.columns)], rows, prov
+    return ["scene", *(column[0] for column in spec.columns)], rows, prov
 
 
 def table_of(name: str) -> tuple[list[str], list[list[str]], dict[str, Any], Spec]:

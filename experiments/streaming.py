@@ -160,6 +160,7 @@ def summary_text(result: dict[str, Any], limit_gib: float, command: str) -> str:
     """The run's table in Markdown, with the machine and the command (what results_tables.py reads)."""
     gib = 2 ** 30
     gen = result["generation"]
+
     def thousands(x: float) -> str:  # 1 935, as the docs print it
         return f"{x:,.0f}".replace(",", " ")
 
@@ -184,6 +185,7 @@ def summary_text(result: dict[str, Any], limit_gib: float, command: str) -> str:
             f"{machine['cpus']} CPUs. Command: `{command}`.\n\n{result['steps']} timed steps at batch "
             f"{result['batch_size']} per run, after warm-up steps; the limit is a memory cgroup (page cache "
             f"included).\n\n" + "\n".join(lines) + "\n")
+
 
 def make_dataset(gib: float, data_dir: Path) -> tuple[Path, int]:
     from lnf.dataset import DatasetConfig, ensure_dataset

@@ -220,7 +220,7 @@ def test_a_stacked_table_takes_the_marked_row_of_each_study_and_their_provenance
         monkeypatch.setitem(RT.SPECS, f"roofline-{scene}", RT.Spec("study", "x", csv="roofline.csv"))
     monkeypatch.setitem(RT.SPECS, "stack", RT.Spec("stack", "x", parts=(("A", "roofline-a"), ("B", "roofline-b")),
                                                    where=("default", "True"),
-                                                   columns=(("width", "width"), ("ms", "ms"), ("× bound", "ratio"))))
+                                                   columns=(("width", "width"), ("ms", "seconds", 1e3), ("× bound", "ratio"))))
     lines = RT.render("stack")
     assert lines[:4] == ["| scene | width | ms | × bound |", "|---|---|---|---|", "| A | 256 | 27.9 | 2.6 |",
                          "| B | 256 | 45.7 | 2.6 |"]
