@@ -10,16 +10,21 @@ from pathlib import Path as _Path
 
 def _map_repository_configs() -> None:
     """Make ``lnf.conf`` importable from a checkout used without installing (only ``PYTHONPATH``): an install
-    ships the repository's ``conf/`` as ``lnf.conf``; here it is mapped onto the same folder by hand."""
+    ships the repository's ``conf/`` as ``lnf.conf``; here it is mapped onto the same folder by hand. A checkout
+    beside which another one is installed (a git worktree of an older commit, say) reads its own ``conf/``, not
+    the installed one's."""
     if "lnf.conf" in _sys.modules:
         return
+    root = _Path(__file__).resolve().parent.parent
+    init = root / "conf" / "__init__.py"
+    own = init.is_file() and (root / "pyproject.toml").is_file()  # this lnf is a repository's, with its conf/
     try:
-        if _ilu.find_spec("lnf.conf") is not None:
-            return
+        found = _ilu.find_spec("lnf.conf")
     except (ImportError, ValueError):
-        pass
-    init = _Path(__file__).resolve().parent.parent / "conf" / "__init__.py"
-    if init.is_file():
+        found = None
+    if found is not None and (not own or _Path(found.origin or "").resolve() == init.resolve()):
+        return
+    if own:
         spec = _ilu.spec_from_file_location("lnf.conf", init, submodule_search_locations=[str(init.parent)])
         if spec is not None and spec.loader is not None:
             module = _ilu.module_from_spec(spec)

@@ -10,7 +10,7 @@ Layout (``FORMAT_VERSION`` 2)::
            DatasetConfig), scene_name (str)
     /times                       (T,)            float64  [s], t_k = dt·k
     /grids/fine                  (Nf, dim_B)     float32  midpoint grid, fine_resolution per axis
-    /grids/coarse                (Nc, dim_B)     float32  midpoint grid, coarse_resolution per axis
+    /grids/coarse                (Nc, dim_B)     float32  midpoint (or vertex) grid, coarse_resolution per axis
     /{split}/states              (n, T, S)       float64
     /{split}/energy              (n, T)          float64  scene.true_energy
     /{split}/fields              (n, T, Nf, A)   float32  q on the fine grid
@@ -62,11 +62,12 @@ import h5py
 import numpy as np
 
 from lnf.progress import progress_bar
-from lnf.quadrature import midpoint_grid
+from lnf.quadrature import midpoint_grid, vertex_grid
 from lnf.tempfiles import write_bytes_atomic, writer_is_gone
 
 FORMAT_VERSION = 2
 SPLITS = ("train", "val", "test")
+COARSE_GRIDS = ("centres", "vertices")
 CHECKSUM_ATTR = "lnf_checksum"
 CHECKSUM_ALGORITHM = "blake2b"
 FIELD_KEYS = ("fields", "velocities", "coarse_fields", "coarse_velocities")
@@ -125,7 +126,10 @@ class DatasetConfig:
         n_times: samples per trajectory; dt: sample spacing [s], t_k = dt·k, k = 0..n_times−1.
         train_times: the first samples used for training (time split; docs/method.md §7.1).
         fine_resolution: evaluation grid, fine_resolution^dim_B cell centres.
-        coarse_resolution: observation grid, coarse_resolution^dim_B cell centres.
+        coarse_resolution: observation grid, coarse_resolution^dim_B points.
+        coarse_grid: ``"centres"``: the cell centres of that many cells per axis (the paper's); ``"vertices"``:
+            that many equally spaced points per axis from one face of the box to the other, so the observations
+            reach the boundary, where a field such as the pendulum's Legendre mode is largest.
         observed_fraction: fraction of the coarse grid each trajectory observes (fixed random subset).
         seed: seed of initial states and masks.
     """
@@ -140,6 +144,7 @@ class DatasetConfig:
     coarse_resolution: int = 32
     observed_fraction: float = 0.25
     seed: int = 0
+    coarse_grid: str = "centres"
 
     def __post_init__(self) -> None:
         for key in ("n_train", "n_val", "n_test", "n_times", "train_times", "fine_resolution",
@@ -154,6 +159,19 @@ class DatasetConfig:
             raise DatasetError(f"data.train_times must be ≤ data.n_times = {self.n_times}, got {self.train_times}")
         if not 0 < self.observed_fraction <= 1:
             raise DatasetError(f"data.observed_fraction must be in (0, 1], got {self.observed_fraction!r}")
+        if self.coarse_grid not in COARSE_GRIDS:
+            raise DatasetError(f"data.coarse_grid must be one of {', '.join(COARSE_GRIDS)}, got {self.coarse_grid!r}")
+        if self.coarse_grid == "vertices" and self.coarse_resolution < 2:
+            raise DatasetError("data.coarse_grid=vertices needs data.coarse_resolution ≥ 2 (a point on each face), "
+                               f"got {self.coarse_resolution}")
+
+    def record(self) -> dict[str, Any]:
+        """The settings a file records (json-able). ``coarse_grid`` appears only when it is not the default
+        "centres", so files written before the setting existed keep matching their configuration."""
+        values = asdict(self)
+        if values["coarse_grid"] == "centres":
+            del values["coarse_grid"]
+        return values
 
     @classmethod
     def from_mapping(cls, values: Mapping[str, Any], ignore: tuple[str, ...] = ()) -> "DatasetConfig":
@@ -180,7 +198,7 @@ def scene_record(scene: Any) -> dict[str, Any]:
 
 def generation_attributes(scene: Any, cfg: DatasetConfig) -> dict[str, Any]:
     """The json-able description a file must carry to be reused: format version, scene spec, config."""
-    return {"format_version": FORMAT_VERSION, "scene": scene_record(scene), "generation": asdict(cfg)}
+    return {"format_version": FORMAT_VERSION, "scene": scene_record(scene), "generation": cfg.record()}
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -210,7 +228,7 @@ def _expected(scene: Any, cfg: Optional[DatasetConfig]) -> dict[str, Any]:
     if scene is not None:
         exp["scene"] = generation_attributes(scene, cfg or DatasetConfig())["scene"]
     if cfg is not None:
-        exp["generation"] = asdict(cfg)
+        exp["generation"] = cfg.record()
     return exp
 
 
@@ -444,8 +462,17 @@ def _read_verified(f: h5py.File, path: Path, key: str) -> np.ndarray:
 # ---------------------------------------------------------------------------------------------------
 # generation
 # ---------------------------------------------------------------------------------------------------
-def _grid(scene: Any, resolution: int) -> np.ndarray:
-    """The scene's observation points (N, dim_B) float32 at `resolution` (by default its box's midpoint grid)."""
+def _grid(scene: Any, resolution: int, kind: str = "centres") -> np.ndarray:
+    """The scene's observation points (N, dim_B) float32 at `resolution` (by default its box's midpoint grid;
+    `kind` "vertices": its box's vertex grid, see :class:`DatasetConfig`)."""
+    if kind == "vertices":
+        from lnf.scenes.base import Scene
+
+        own = getattr(type(scene), "observation_points", Scene.observation_points)
+        if own is not Scene.observation_points:
+            raise DatasetError(f"scene {scene.name}: data.coarse_grid=vertices spans the scene's box, but this scene "
+                               "gives its own observation points (observation_points); use data.coarse_grid=centres")
+        return vertex_grid(resolution, scene.bounds).cpu().numpy().astype(np.float32)
     if hasattr(scene, "observation_points"):
         return np.asarray(scene.observation_points(resolution), dtype=np.float32)
     return midpoint_grid(resolution, scene.bounds).cpu().numpy().astype(np.float32)
@@ -741,7 +768,7 @@ def generate_dataset(scene: Any, cfg: DatasetConfig, path: str | os.PathLike) ->
     path = Path(path)
     attrs = generation_attributes(scene, cfg)
     times = cfg.dt * np.arange(cfg.n_times, dtype=np.float64)
-    fine, coarse = _grid(scene, cfg.fine_resolution), _grid(scene, cfg.coarse_resolution)
+    fine, coarse = _grid(scene, cfg.fine_resolution), _grid(scene, cfg.coarse_resolution, cfg.coarse_grid)
     initial, masks = _draw(scene, cfg, len(coarse))
     bounds = np.cumsum([0, cfg.n_train, cfg.n_val, cfg.n_test])
     needed = _needed_bytes(int(bounds[-1]), cfg.n_times, int(np.prod(initial.shape[1:])), len(fine), len(coarse),

@@ -62,6 +62,17 @@ def midpoint_grid(resolution: int | Sequence[int], bounds: Bounds) -> Tensor:
     return uniform_grid(resolution, bounds).points
 
 
+def vertex_grid(resolution: int | Sequence[int], bounds: Bounds) -> Tensor:
+    """Equally spaced points from face to face of the box, `resolution` ≥ 2 per axis, row-major ('ij'):
+    (prod(resolution), dim_B). Unlike :func:`midpoint_grid`, its hull is the whole box."""
+    b = _check_bounds(bounds)
+    res = [int(resolution)] * len(b) if np.isscalar(resolution) else [int(r) for r in resolution]
+    if len(res) != len(b) or min(res) < 2:
+        raise ValueError(f"vertex grid resolution must be an int ≥ 2 per axis of {len(b)}, got {resolution!r}")
+    axes = [torch.linspace(lo, hi, n, dtype=torch.float64) for (lo, hi), n in zip(b, res)]
+    return torch.stack(torch.meshgrid(*axes, indexing="ij"), dim=-1).reshape(-1, len(b))
+
+
 def uniform_grid(resolution: int | Sequence[int], bounds: Bounds) -> Quadrature:
     """Midpoint rule on a uniform grid of `resolution` cells per axis (equal weights, O(h²))."""
     b = _check_bounds(bounds)

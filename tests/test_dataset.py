@@ -99,6 +99,37 @@ def test_generation_is_deterministic(tmp_path, scene, shared_file):
     np.testing.assert_array_equal(a.masks, b.masks)
 
 
+def test_vertex_observation_grid_reaches_the_boundary(tmp_path, scene, shared_file):
+    path = generate_dataset(scene, replace(CFG, coarse_grid="vertices"), tmp_path / "vertices.h5")
+    with h5py.File(path, "r") as f, h5py.File(shared_file, "r") as g:
+        coarse, centres = f["grids/coarse"][...], g["grids/coarse"][...]
+        assert coarse.shape == centres.shape == (64, 2)
+        assert coarse.min() == -1.0 and coarse.max() == 1.0 and -1.0 < centres.min() and centres.max() < 1.0
+        np.testing.assert_array_equal(f["grids/fine"][...], g["grids/fine"][...])  # the evaluation grid stays
+        assert f.attrs["lnf_generation"] != g.attrs["lnf_generation"]
+    split = load_split(path, "test", scene=scene, cfg=replace(CFG, coarse_grid="vertices"))
+    q, _ = scene.fields(split.states[0], split.coarse_points.astype(np.float64))
+    np.testing.assert_allclose(split.coarse_fields[0], q, rtol=0, atol=1e-6)
+    with pytest.raises(DatasetError, match="generation.coarse_grid: file .*vertices"):
+        ensure_dataset(scene, CFG, path, on_mismatch="error")
+
+
+def test_vertex_grid_of_a_scene_with_its_own_points_is_an_error(tmp_path):
+    class OwnPoints(LiftedPendulum):
+        def observation_points(self, resolution):
+            return super().observation_points(resolution)
+
+    with pytest.raises(DatasetError, match="gives its own observation points.*data.coarse_grid=centres"):
+        generate_dataset(OwnPoints(), replace(CFG, coarse_grid="vertices"), tmp_path / "own.h5")
+    assert not list(tmp_path.iterdir())
+
+
+def test_default_observation_grid_is_not_recorded(scene):
+    """Files written before data.coarse_grid existed keep matching the default configuration."""
+    assert "coarse_grid" not in generation_attributes(scene, CFG)["generation"]
+    assert generation_attributes(scene, replace(CFG, coarse_grid="vertices"))["generation"]["coarse_grid"] == "vertices"
+
+
 # -- reuse and regeneration ------------------------------------------------------------------------------
 def test_same_config_reuses_file(fresh_file, scene):
     with h5py.File(fresh_file, "a") as f:
@@ -152,6 +183,10 @@ def test_bad_config_names_key():
         DatasetConfig(observed_fraction=0.0)
     with pytest.raises(DatasetError, match=r"data\.dt"):
         DatasetConfig(dt=-0.1)
+    with pytest.raises(DatasetError, match=r"data\.coarse_grid must be one of centres, vertices, got 'edges'"):
+        DatasetConfig(coarse_grid="edges")
+    with pytest.raises(DatasetError, match=r"data\.coarse_grid=vertices needs data\.coarse_resolution ≥ 2"):
+        DatasetConfig(coarse_grid="vertices", coarse_resolution=1)
     with pytest.raises(DatasetError, match=r"data\.bogus"):
         DatasetConfig.from_mapping({"bogus": 1})
     assert DatasetConfig(dt=1).dt == 1.0 and isinstance(DatasetConfig(dt=1).dt, float)

@@ -51,6 +51,25 @@ def test_bench_training_measures_this_checkout_and_a_baseline_commit_in_the_same
     assert "lnf-bench-" not in worktrees
 
 
+def test_bench_defaults_trains_each_checkout_and_scores_it_on_scattered_points(tmp_path):
+    """The whole-run benchmark trains the scene's default in this checkout and in HEAD (a temporary worktree, with
+    its own configs), evaluates each checkpoint on scattered points, and writes one table with the ratios."""
+    out = tmp_path / "bench"
+    _run(["experiments/bench_defaults.py", "--smoke", "--threads", "1", "--baseline", "HEAD", "--points", "64",
+          "--out", str(out)])
+    rows = json.loads((out / "bench_defaults.json").read_text())["rows"]
+    assert [r["checkout"] for r in rows] == ["baseline", "this checkout"]
+    for r in rows:
+        assert r["wall_seconds"] > 0 and r["epochs_run"] == r["max_epochs"] == 1 and r["points"] == 64
+        assert r["grid"] > 0 and r["scattered"] > 0
+        assert (out / f"pendulum-{r['checkout']}" / "scattered" / "metrics.json").is_file()
+    summary = (out / "summary.md").read_text()
+    assert "Command: `python experiments/bench_defaults.py --scenes pendulum --baseline HEAD --smoke`" in summary
+    assert "This checkout against the baseline: pendulum: whole run ×" in summary
+    worktrees = subprocess.run(["git", "-C", str(ROOT), "worktree", "list"], capture_output=True, text=True).stdout
+    assert "lnf-bench-" not in worktrees
+
+
 def test_probe_settings_reports_json():
     out = _run(["experiments/probe_settings.py", "--steps", "3", "--train", "2", "--test", "1", "--width", "16",
                 "--threads", "1"]).stdout

@@ -176,3 +176,26 @@ def test_a_checkout_on_pythonpath_alone_finds_its_configs(tmp_path):
     path, width = proc.stdout.split()
     assert path == str(CONF / "__init__.py")
     assert int(width) == yaml.safe_load((CONF / "model" / "lnf.yaml").read_text())["width"]
+
+
+def test_another_checkout_on_pythonpath_reads_its_own_configs(tmp_path):
+    """A second checkout (e.g. an older commit in a git worktree) put first on PYTHONPATH beside an installed lnf
+    composes its own conf/, not the installed package's (a baseline's configs must be the baseline's)."""
+    other = tmp_path / "checkout"
+    shutil.copytree(ROOT / "lnf", other / "lnf", ignore=shutil.ignore_patterns("__pycache__"))
+    shutil.copytree(CONF, other / "conf", ignore=shutil.ignore_patterns("__pycache__"))
+    shutil.copy(ROOT / "pyproject.toml", other / "pyproject.toml")
+    model = other / "conf" / "model" / "lnf.yaml"
+    model.write_text(model.read_text().replace("width: 256", "width: 77"))
+    code = ("import lnf, lnf.conf\n"
+            "from hydra import compose, initialize_config_module\n"
+            "with initialize_config_module('lnf.conf', version_base=None):\n"
+            "    cfg = compose('train')\n"
+            "print(lnf.__file__, lnf.conf.__file__, cfg.model.width)\n")
+    env = {**os.environ, "PYTHONPATH": str(other)}
+    proc = subprocess.run([shutil.which("python") or "python", "-c", code], cwd=tmp_path, env=env, text=True,
+                          capture_output=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    package, configs, width = proc.stdout.split()
+    assert package == str(other / "lnf" / "__init__.py") and configs == str(other / "conf" / "__init__.py")
+    assert int(width) == 77
