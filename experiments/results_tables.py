@@ -74,7 +74,10 @@ class Spec:
         run's ``metrics.json`` (or of the JSON file ``file``, nested keys joined by ``/``: e.g. ``results.json`` of
         ``experiments/scenes.py``); ``stack``: one row per table of ``parts`` (label, table name), the rows of
         each one's study CSV where column ``where[0]`` is ``where[1]``, cells ``columns`` (header, key, and
-        optionally a factor the value is multiplied by: seconds → ms); its provenance is that of the parts; ``transcribed``: no raw outputs known, ``table.csv`` only.
+        optionally a factor the value is multiplied by: seconds → ms); its provenance is that of the parts; ``cells``: a
+        table assembled from the cells of other tables (``results/<name>/cells.json``: a header and rows of text
+        templates, see :func:`fill_cell`), with the provenance of the tables it quotes; ``transcribed``: no raw
+        outputs known, ``table.csv`` only.
     raw: the folder of the raw outputs, relative to the repository (None: given on the command line, or none).
     command: the command that makes them.
     """
@@ -168,6 +171,7 @@ SPECS: dict[str, Spec] = {
         ("SIREN width", "width"), ("trajectories", "batch"), ("quadrature points", "points"),
         ("FLOPs per step", "flops"), ("ms per RK4 step", "seconds", 1e3), ("× the bound", "ratio"),
         ("matmul peak, same run [GFLOP/s]", "matmul_peak_gflops"))),
+    "summary": Spec("cells", "python experiments/results_tables.py"),
     "pendulum_default": Spec("metrics", "python -m lnf.train +experiment=pendulum", metrics=PENDULUM_METRICS),
     "pendulum_acceptance": Spec("metrics", "python experiments/pendulum_acceptance.py", file="acceptance.json", metrics=(
         ("wall-clock of the train command [s] (data generation, training, test evaluation; target ≤ 1 200)",
@@ -287,6 +291,8 @@ def provenance_line(name: str, prov: dict[str, Any], spec: Spec) -> str:
         text += f" {note[:1].upper()}{note[1:]}."
     if spec.kind == "stack":
         text += " Sources: " + ", ".join(f"`results/{part}/`" for _, part in spec.parts)
+    elif spec.kind == "cells":
+        text += f" Cells: `results/{name}/cells.json`; sources: " + ", ".join(f"`results/{p}/`" for p in prov["parts"])
     else:
         text += f" Source: `results/{name}/`"
     if prov.get("transcribed_from_docs"):
@@ -384,11 +390,118 @@ def _stacked(spec: Spec) -> tuple[list[str], list[list[str]], dict[str, Any]]:
     return ["scene", *(column[0] for column in spec.columns)], rows, prov
 
 
+CELL_REF = re.compile(r"\{([^{}]+)\}")
+
+
+def _quoted_cell(ref: str, where: str) -> tuple[str, str]:
+    """(text, table) of a reference ``TABLE|ROW|COLUMN``: the cell of table TABLE (as rendered) in the row whose
+    first cell is ROW (``ROW@SECOND``: and whose second cell is SECOND) and the column headed COLUMN;
+    ``COLUMN#k``: the k-th (from 1) of the values a cell joins with " / " or " · " ("0.070 / 0.062")."""
+    parts = [p.strip() for p in ref.split("|")]
+    if len(parts) != 3:
+        raise TableError(f"{where}: {{{ref}}} is not TABLE|ROW|COLUMN")
+    name, row_key, column = parts
+    column, _, pick = column.partition("#")
+    if name not in SPECS and not (RESULTS / name).is_dir():
+        raise TableError(f"{where}: {{{ref}}} quotes table {name!r}, which has no results/{name}/")
+    header, rows, _, _ = table_of(name)
+    if column not in header:
+        raise TableError(f"{where}: {{{ref}}}: table {name} has no column {column!r} (it has {header})")
+    first, _, second = row_key.partition("@")
+    found = [r for r in rows if r and r[0] == first and (not second or (len(r) > 1 and r[1] == second))]
+    if len(found) != 1:
+        raise TableError(f"{where}: {{{ref}}}: table {name} has {len(found)} rows {row_key!r} (first cells: "
+                         f"{[r[0] for r in rows]}); name one with ROW@SECOND-CELL")
+    row = found[0]
+    k = header.index(column)
+    text = row[k] if k < len(row) else ""
+    if pick:
+        values = re.split(r" / | · ", text)
+        if not pick.isdigit() or not 1 <= int(pick) <= len(values):
+            raise TableError(f"{where}: {{{ref}}}: the cell is {text!r}, which has no value #{pick}")
+        text = values[int(pick) - 1]
+    return text, name
+
+
+def _number(text: str, ref: str, where: str) -> float:
+    try:
+        return float(text.replace(" ", ""))
+    except ValueError:
+        raise TableError(f"{where}: {{{ref}}} is {text!r}, not a number to divide") from None
+
+
+def fill_cell(template: str, where: str) -> tuple[str, list[str]]:
+    """A cell of a ``cells`` table: `template` with every ``{TABLE|ROW|COLUMN}`` replaced by that cell of that
+    table, and every ``{A ÷ B}`` (two such references) by the ratio of their numbers to 2 significant digits
+    (e.g. "1.8", "2 100"); returns the text and the tables it quotes."""
+    quoted: list[str] = []
+
+    def replace(match: "re.Match[str]") -> str:
+        ref = match.group(1)
+        if " ÷ " in ref:
+            a, b = ref.split(" ÷ ", 1)
+            (ta, na), (tb, nb) = _quoted_cell(a, where), _quoted_cell(b, where)
+            quoted.extend([na, nb])
+            x = _number(ta, a, where) / _number(tb, b, where)
+            return fmt(float(f"{x:.2g}")) if abs(x) < 1e3 else f"{float(f'{x:.2g}'):,.0f}".replace(",", " ")
+        text, name = _quoted_cell(ref, where)
+        quoted.append(name)
+        return text
+
+    return CELL_REF.sub(replace, template), quoted
+
+
+def _cells(name: str, spec: Spec) -> tuple[list[str], list[list[str]], dict[str, Any]]:
+    """The rows of a ``cells`` table, and the provenance of the tables its cells quote."""
+    source = RESULTS / name / "cells.json"
+    cells = _read_json(source)
+    if not isinstance(cells, dict) or not isinstance(cells.get("header"), list) or not isinstance(cells.get("rows"), list):
+        raise TableError(f"results/{name}/cells.json: expected {{\"header\": [...], \"rows\": [[...], ...]}}")
+    rows, quoted = [], []
+    for i, row in enumerate(cells["rows"]):
+        filled = [fill_cell(str(t), f"results/{name}/cells.json, row {i + 1}") for t in row]
+        rows.append([text for text, _ in filled])
+        quoted += [q for _, qs in filled for q in qs]
+    parts = list(dict.fromkeys(quoted))
+    provs = {part: table_of(part)[2] for part in parts}
+    transcribed = [part for part, p in provs.items() if p.get("transcribed_from_docs")]
+
+    def joined(key: str) -> Optional[str]:
+        values = list(dict.fromkeys(str(p[key]) for p in provs.values() if p.get(key)))
+        return ", ".join(values) if values else None
+
+    dates = sorted(d for p in provs.values() for d in re.findall(r"\d{4}-\d{2}-\d{2}", str(p.get("date", ""))))
+    note = cells.get("note", "")
+    if transcribed:
+        note += (f"{'; ' if note else ''}quoting tables still transcribed from reports ({', '.join(transcribed)}): "
+                 f"they follow when those are regenerated")
+    machines = list(dict.fromkeys(re.sub(r"\), .*$", ")", str(p["machine"])) for p in provs.values() if p.get("machine")))
+    prov = {"machine": " and ".join(machines) or None, "date": f"{dates[0]} to {dates[-1]}" if dates else None,
+            "command": ["python experiments/results_tables.py"], "note": note,
+            "parts": parts}
+    return [str(h) for h in cells["header"]], rows, prov
+
+
+def table_parts(name: str) -> list[str]:
+    """The tables whose sources table `name` is made from (a stack's or a cells table's), else []."""
+    spec = SPECS.get(name)
+    if spec is None:
+        return []
+    if spec.kind == "stack":
+        return [part for _, part in spec.parts]
+    if spec.kind == "cells":
+        return list(table_of(name)[2]["parts"])
+    return []
+
+
 def table_of(name: str) -> tuple[list[str], list[list[str]], dict[str, Any], Spec]:
     """(header, rows, provenance, spec) of table `name` from results/<name>/ (a stack: from its parts' folders)."""
     spec = SPECS.get(name)
     if spec is not None and spec.kind == "stack":
         header, rows, prov = _stacked(spec)
+        return header, rows, prov, spec
+    if spec is not None and spec.kind == "cells":
+        header, rows, prov = _cells(name, spec)
         return header, rows, prov, spec
     folder = RESULTS / name
     if not folder.is_dir():
@@ -462,7 +575,7 @@ def rebuild(text: str, where: str, used: Optional[dict[str, list[str]]] = None) 
         out.append(f"{indent}{end}")
         if used is not None:
             used.setdefault(name, []).append(where)
-            for _, part in SPECS[name].parts if name in SPECS else ():
+            for part in table_parts(name):
                 used.setdefault(part, []).append(f"{where} (in {name})")
         i = j + 1
     return "\n".join(out)
@@ -546,6 +659,8 @@ def collect(name: str, raw: Optional[Path]) -> Path:
     spec = SPECS.get(name)
     if spec is None or spec.kind == "transcribed":
         raise TableError(f"table {name!r} has no collector: update results/{name}/table.csv by hand")
+    if spec.kind in ("stack", "cells"):
+        raise TableError(f"table {name!r} is made from other tables: collect those")
     folder = raw if raw is not None else (ROOT / spec.raw if spec.raw else None)
     if folder is None:
         raise TableError(f"table {name!r}: give the run's folder, --collect {name}=<folder>")

@@ -125,6 +125,9 @@ def test_every_results_source_has_its_provenance():
     folders = sorted(p for p in RT.RESULTS.iterdir() if p.is_dir() and not p.name.startswith("."))
     assert folders
     for folder in folders:
+        if RT.SPECS.get(folder.name) is not None and RT.SPECS[folder.name].kind == "cells":
+            assert (folder / "cells.json").is_file(), f"{folder.name}: a table of quoted cells needs its cells.json"
+            continue  # its provenance is that of the tables it quotes
         prov = json.loads((folder / "provenance.json").read_text())
         for key in ("machine", "date", "command"):
             assert prov.get(key), f"{folder.name}: provenance.json has no {key}"
@@ -230,3 +233,31 @@ def test_a_stacked_table_takes_the_marked_row_of_each_study_and_their_provenance
     (results / "roofline-b" / "roofline.csv").write_text("method,width,seconds,ratio,default\nlnf,64,0.5,9.0,False\n")
     with pytest.raises(RT.TableError, match="roofline-b/roofline.csv: no row with default = True"):
         RT.render("stack")
+
+
+def test_a_table_of_quoted_cells_follows_the_tables_it_quotes(tmp_path, monkeypatch):
+    """summary: each cell a template quoting other tables' cells, and ratios of two of them."""
+    results = tmp_path / "results"
+    (results / "runs").mkdir(parents=True)
+    (results / "runs" / "table.csv").write_text("method,integrator,error\nours,midpoint,0.02\nours,rk4,0.03 / 0.05\n"
+                                                "black box,rk4,0.06\n")
+    (results / "runs" / "provenance.json").write_text(json.dumps({"machine": "m (2 cores), alone", "date": "2026-12-01",
+                                                                 "command": "python run.py", "transcribed_from_docs": True}))
+    (results / "digest").mkdir()
+    cells = {"header": ["scene", "error", "reading"],
+             "rows": [["a", "{runs|ours@midpoint|error} · {runs|ours@rk4|error#2}",
+                       "{runs|black box|error ÷ runs|ours@midpoint|error}× better"]]}
+    (results / "digest" / "cells.json").write_text(json.dumps(cells))
+    monkeypatch.setattr(RT, "RESULTS", results)
+    monkeypatch.setitem(RT.SPECS, "digest", RT.Spec("cells", "x"))
+    lines = RT.render("digest")
+    assert lines[2] == "| a | 0.02 · 0.05 | 3× better |"
+    assert "m (2 cores), 2026-12-01 to 2026-12-01" in lines[-1] and "`results/runs/`" in lines[-1]
+    assert "still transcribed from reports (runs)" in lines[-1]
+    for bad, message in [("{runs|ours|error}", "has 2 rows 'ours'"), ("{runs|ours@rk4|speed}", "no column 'speed'"),
+                         ("{nothing|a|b}", "no results/nothing/"), ("{runs|ours@rk4|error ÷ runs|black box|error}",
+                                                                    "not a number")]:
+        cells["rows"][0][1] = bad
+        (results / "digest" / "cells.json").write_text(json.dumps(cells))
+        with pytest.raises(RT.TableError, match=message):
+            RT.render("digest")
