@@ -46,6 +46,8 @@ def main() -> None:
     p.add_argument("--test", type=int, default=4, help="held-out trajectories")
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", default=None, metavar="FILE",
+                   help="also write the report there (JSON, atomically), e.g. for results_tables.py --collect")
     args = p.parse_args()
     torch.set_num_threads(args.threads)
     torch.manual_seed(args.seed)
@@ -116,8 +118,14 @@ def main() -> None:
     with torch.no_grad():
         J = model.field.jet(torch.tensor(codes, dtype=torch.float32)[:, None], quad.points.float(), order=1).J[..., 0, 0]
     eps = ((w * J * J).sum(-1) / ((w * u * J).sum(-1)) ** 2 - 1).numpy()
-    print(json.dumps({"settings": vars(args), **{k: round(float(x), 5) for k, x in report.items()},
-                      "eps_along_codes": [round(float(e), 5) for e in eps]}, indent=1))
+    report["eps_interior_min"], report["eps_interior_max"] = float(eps[1:-1].min()), float(eps[1:-1].max())
+    text = json.dumps({"settings": vars(args), **{k: round(float(x), 5) for k, x in report.items()},
+                       "eps_along_codes": [round(float(e), 5) for e in eps]}, indent=1)
+    print(text)
+    if args.out:
+        from lnf.tempfiles import write_text_atomic
+
+        write_text_atomic(args.out, text + "\n")
 
 
 if __name__ == "__main__":

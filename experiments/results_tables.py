@@ -15,7 +15,10 @@ data, which is one of
   run's ``metrics.json``), from which the table is computed: ``python experiments/results_tables.py --collect``
   copies it from ``outputs/`` after a study has run (raw ``outputs/`` is not committed);
 - ``table.csv``, the table's cells as a report gave them, for a table whose raw outputs are not on this machine.
-  Its ``provenance.json`` says ``"transcribed_from_docs": true``, and the table says so under it.
+  Its ``provenance.json`` says ``"transcribed_from_docs": true``, and the table says so under it;
+- ``cells.json``, a table made of other tables' cells (the front page's summary): each cell a template that quotes
+  them, ``{TABLE|ROW|COLUMN}``, or gives the ratio of two, ``{A ÷ B}`` (:func:`fill_cell`); its provenance is
+  theirs.
 
 Commands (from the repository root)::
 
@@ -154,6 +157,17 @@ FEM_SCENE_MEASUREMENTS = (
     ("all measurements [s]", "seconds"),
 )
 
+# experiments/probe_settings.py --out probe.json: the embedding after a fixed number of steps
+PROBE_METRICS = (
+    ("projection error, 32×32 (training grid)", "projection_rel_l2_32"),
+    ("projection error, 64×64 (test grid)", "projection_rel_l2_64"),
+    ("projection error, 4 096 points uniform over the body", "projection_rel_l2_uniform"),
+    ("rollout error, 64×64: GL32 · GL8 in the dynamics", "rollout_rel_l2_64_GL32|rollout_rel_l2_64_GL8"),
+    ("boundary ring's share of the squared 64×64 error", "ring_share_of_sq_error"),
+    ("ε = ‖J‖²/⟨J, u⟩² − 1, interior codes: min · max", "eps_interior_min|eps_interior_max"),
+    ("training steps · seconds", "steps|train_seconds"),
+)
+
 SPECS: dict[str, Spec] = {
     **{f"pareto-{s}": _study("pareto", s, "pareto") for s in SCENES},
     **{f"stability-{s}": _study("stability", s) for s in SCENES},
@@ -191,6 +205,13 @@ SPECS: dict[str, Spec] = {
     "soft_body_default": Spec("metrics", "python -m lnf.train +experiment=soft_body", metrics=SCENE_METRICS),
     "soft_body_scenes": Spec("metrics", "python experiments/scenes.py --scene soft_body --measure speedup shape damped",
                              metrics=FEM_SCENE_MEASUREMENTS, file="results.json"),
+    **{f"pendulum_grid-{g}": Spec("metrics", f"python -m lnf.train +experiment=pendulum data.coarse_grid={g.split('-')[0]}",
+                                  metrics=PENDULUM_METRICS) for g in ("centres", "vertices", "vertices-lr1e-3")},
+    "pendulum_grid": Spec("cells", "python experiments/results_tables.py"),
+    **{f"probe-w0-{w}": Spec("metrics", f"python experiments/probe_settings.py --steps 650 --hyper-depth 0 "
+                                        f"--velocity-weight 0 --w0 {w} --out <folder>/probe.json",
+                             metrics=PROBE_METRICS, file="probe.json") for w in (10, 30)},
+    "probe-w0": Spec("cells", "python experiments/results_tables.py"),
     "pendulum_lr1e-3": Spec("metrics", "python -m lnf.train +experiment=pendulum optimizer.lr=1e-3",
                             metrics=PENDULUM_METRICS),
     "evaluate_readme": Spec("metrics", "python -m lnf.evaluate ckpt_path=<the pendulum_lr1e-3 run>/checkpoints/last.ckpt "
@@ -476,9 +497,14 @@ def _cells(name: str, spec: Spec) -> tuple[list[str], list[list[str]], dict[str,
         note += (f"{'; ' if note else ''}quoting tables still transcribed from reports ({', '.join(transcribed)}): "
                  f"they follow when those are regenerated")
     machines = list(dict.fromkeys(re.sub(r"\), .*$", ")", str(p["machine"])) for p in provs.values() if p.get("machine")))
-    prov = {"machine": " and ".join(machines) or None, "date": f"{dates[0]} to {dates[-1]}" if dates else None,
-            "command": ["python experiments/results_tables.py"], "note": note,
-            "parts": parts}
+    commands = list(dict.fromkeys(c for p in provs.values() for c in ([p["command"]] if isinstance(p.get("command"), str)
+                                                                       else p.get("command") or [])))
+    span = None if not dates else dates[0] if dates[0] == dates[-1] else f"{dates[0]} to {dates[-1]}"
+    prov = {"machine": " and ".join(machines) or None, "date": span, "command": commands or spec.command,
+            "commit": joined("commit"), "note": note, "parts": parts}
+    if cells.get("command"):  # the commands in short (a summary of many tables): each source keeps its own
+        prov.update(command=cells["command"], commit=None)
+        prov["note"] += "; each source's provenance gives its exact command and commit"
     return [str(h) for h in cells["header"]], rows, prov
 
 

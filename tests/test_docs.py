@@ -252,7 +252,7 @@ def test_a_table_of_quoted_cells_follows_the_tables_it_quotes(tmp_path, monkeypa
     monkeypatch.setitem(RT.SPECS, "digest", RT.Spec("cells", "x"))
     lines = RT.render("digest")
     assert lines[2] == "| a | 0.02 · 0.05 | 3× better |"
-    assert "m (2 cores), 2026-12-01 to 2026-12-01" in lines[-1] and "`results/runs/`" in lines[-1]
+    assert "Made on m (2 cores), 2026-12-01, by `python run.py`." in lines[-1] and "`results/runs/`" in lines[-1]
     assert "still transcribed from reports (runs)" in lines[-1]
     for bad, message in [("{runs|ours|error}", "has 2 rows 'ours'"), ("{runs|ours@rk4|speed}", "no column 'speed'"),
                          ("{nothing|a|b}", "no results/nothing/"), ("{runs|ours@rk4|error ÷ runs|black box|error}",
