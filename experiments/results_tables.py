@@ -212,6 +212,9 @@ SPECS: dict[str, Spec] = {
                                         f"--velocity-weight 0 --w0 {w} --out <folder>/probe.json",
                              metrics=PROBE_METRICS, file="probe.json") for w in (10, 30)},
     "probe-w0": Spec("cells", "python experiments/results_tables.py"),
+    "bench_defaults-pendulum-vertices": Spec("study", "python experiments/bench_defaults.py --override data.coarse_grid=vertices "
+                                         "--out outputs/studies/bench_defaults-vertices",
+                                         raw="outputs/studies/bench_defaults-vertices", csv="bench_defaults.json"),
     "pendulum_lr1e-3": Spec("metrics", "python -m lnf.train +experiment=pendulum optimizer.lr=1e-3",
                             metrics=PENDULUM_METRICS),
     "evaluate_readme": Spec("metrics", "python -m lnf.evaluate ckpt_path=<the pendulum_lr1e-3 run>/checkpoints/last.ckpt "
