@@ -38,13 +38,11 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "experiments"))
 
 from bench_training import baseline_worktree, cpu_name  # noqa: E402
+from studylib import SMOKE_DATA, SMOKE_NEURAL  # noqa: E402
 
 from lnf.tempfiles import write_text_atomic  # noqa: E402
 
-SMOKE = ["data.n_train=3", "data.n_val=1", "data.n_test=2", "data.n_times=20", "data.train_times=10",
-         "data.fine_resolution=12", "data.coarse_resolution=16", "data.batch_size=8", "model.width=16",
-         "model.hyper_width=8", "trainer.max_epochs=1", "quadrature.order=4", "evaluation.max_reduction_points=64",
-         "evaluation.long_steps=0", "evaluation.every_n_epochs=0"]
+SMOKE = [*SMOKE_DATA, *SMOKE_NEURAL, "evaluation.long_steps=0", "evaluation.every_n_epochs=0"]
 COMMON = ["logger=csv", "evaluation.figures=0", "trainer.enable_progress_bar=false"]
 KEYS = {  # column → metrics.json key of the run (grid) or of the evaluation on scattered points
     "grid": "field_rel_l2/all/median",

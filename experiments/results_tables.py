@@ -386,6 +386,18 @@ def _scaled(value: Any, factor: list[float]) -> Any:
     return value * factor[0] if factor and isinstance(value, (int, float)) else value
 
 
+def _joined(provs: list[dict[str, Any]], key: str) -> Optional[str]:
+    """The distinct values of `key` over several provenances, in order, joined by commas (None if none)."""
+    values = list(dict.fromkeys(str(p[key]) for p in provs if p.get(key)))
+    return ", ".join(values) if values else None
+
+
+def _commands(provs: list[dict[str, Any]]) -> list[str]:
+    """The distinct commands of several provenances (each a string or a list of them), in order."""
+    return list(dict.fromkeys(c for p in provs for c in ([p["command"]] if isinstance(p.get("command"), str)
+                                                          else p.get("command") or [])))
+
+
 def _stacked(spec: Spec) -> tuple[list[str], list[list[str]], dict[str, Any]]:
     """A stack's rows, one block per part, and the provenance its parts share (their dates, commands, commits)."""
     rows, provs = [], []
@@ -402,14 +414,9 @@ def _stacked(spec: Spec) -> tuple[list[str], list[list[str]], dict[str, Any]]:
             rows.append([label, *(fmt(_scaled(r.get(key), factor)) for _, key, *factor in spec.columns)])
         provs.append(prov)
 
-    def joined(key: str) -> Optional[str]:
-        values = list(dict.fromkeys(str(p[key]) for p in provs if p.get(key)))
-        return ", ".join(values) if values else None
-
-    commands = list(dict.fromkeys(c for p in provs for c in ([p["command"]] if isinstance(p.get("command"), str)
-                                                              else p.get("command") or [])))
-    prov = {"machine": joined("machine"), "date": joined("date"), "command": commands or spec.command,
-            "commit": joined("commit"), "note": "one row per study, each divided by the matmul peak of its own run",
+    prov = {"machine": _joined(provs, "machine"), "date": _joined(provs, "date"),
+            "command": _commands(provs) or spec.command, "commit": _joined(provs, "commit"),
+            "note": "one row per study, each divided by the matmul peak of its own run",
             "transcribed_from_docs": any(p.get("transcribed_from_docs") for p in provs)}
     return ["scene", *(column[0] for column in spec.columns)], rows, prov
 
@@ -417,10 +424,11 @@ def _stacked(spec: Spec) -> tuple[list[str], list[list[str]], dict[str, Any]]:
 CELL_REF = re.compile(r"\{([^{}]+)\}")
 
 
-def _quoted_cell(ref: str, where: str) -> tuple[str, str]:
+def _quoted_cell(ref: str, where: str, tables: dict[str, Any]) -> tuple[str, str]:
     """(text, table) of a reference ``TABLE|ROW|COLUMN``: the cell of table TABLE (as rendered) in the row whose
     first cell is ROW (``ROW@SECOND``: and whose second cell is SECOND) and the column headed COLUMN;
-    ``COLUMN#k``: the k-th (from 1) of the values a cell joins with " / " or " · " ("0.070 / 0.062")."""
+    ``COLUMN#k``: the k-th (from 1) of the values a cell joins with " / " or " · " ("0.070 / 0.062"). `tables`
+    holds the tables rendered so far (name → table_of), so that each is rendered once."""
     parts = [p.strip() for p in ref.split("|")]
     if len(parts) != 3:
         raise TableError(f"{where}: {{{ref}}} is not TABLE|ROW|COLUMN")
@@ -428,7 +436,9 @@ def _quoted_cell(ref: str, where: str) -> tuple[str, str]:
     column, _, pick = column.partition("#")
     if name not in SPECS and not (RESULTS / name).is_dir():
         raise TableError(f"{where}: {{{ref}}} quotes table {name!r}, which has no results/{name}/")
-    header, rows, _, _ = table_of(name)
+    if name not in tables:
+        tables[name] = table_of(name)
+    header, rows, _, _ = tables[name]
     if column not in header:
         raise TableError(f"{where}: {{{ref}}}: table {name} has no column {column!r} (it has {header})")
     first, _, second = row_key.partition("@")
@@ -454,21 +464,27 @@ def _number(text: str, ref: str, where: str) -> float:
         raise TableError(f"{where}: {{{ref}}} is {text!r}, not a number to divide") from None
 
 
-def fill_cell(template: str, where: str) -> tuple[str, list[str]]:
+def cell_references(template: str) -> list[str]:
+    """The references ``TABLE|ROW|COLUMN`` of a cell template, those of a ratio ``{A ÷ B}`` included."""
+    return [ref for match in CELL_REF.finditer(template) for ref in match.group(1).split(" ÷ ", 1)]
+
+
+def fill_cell(template: str, where: str, tables: Optional[dict[str, Any]] = None) -> tuple[str, list[str]]:
     """A cell of a ``cells`` table: `template` with every ``{TABLE|ROW|COLUMN}`` replaced by that cell of that
     table, and every ``{A ÷ B}`` (two such references) by the ratio of their numbers to 2 significant digits
-    (e.g. "1.8", "2 100"); returns the text and the tables it quotes."""
+    (e.g. "1.8", "2 100"); returns the text and the tables it quotes (`tables`: see :func:`_quoted_cell`)."""
     quoted: list[str] = []
+    tables = {} if tables is None else tables
 
     def replace(match: "re.Match[str]") -> str:
         ref = match.group(1)
         if " ÷ " in ref:
             a, b = ref.split(" ÷ ", 1)
-            (ta, na), (tb, nb) = _quoted_cell(a, where), _quoted_cell(b, where)
+            (ta, na), (tb, nb) = _quoted_cell(a, where, tables), _quoted_cell(b, where, tables)
             quoted.extend([na, nb])
             x = _number(ta, a, where) / _number(tb, b, where)
             return fmt(float(f"{x:.2g}")) if abs(x) < 1e3 else f"{float(f'{x:.2g}'):,.0f}".replace(",", " ")
-        text, name = _quoted_cell(ref, where)
+        text, name = _quoted_cell(ref, where, tables)
         quoted.append(name)
         return text
 
@@ -481,18 +497,14 @@ def _cells(name: str, spec: Spec) -> tuple[list[str], list[list[str]], dict[str,
     cells = _read_json(source)
     if not isinstance(cells, dict) or not isinstance(cells.get("header"), list) or not isinstance(cells.get("rows"), list):
         raise TableError(f"results/{name}/cells.json: expected {{\"header\": [...], \"rows\": [[...], ...]}}")
-    rows, quoted = [], []
+    rows, quoted, tables = [], [], {}
     for i, row in enumerate(cells["rows"]):
-        filled = [fill_cell(str(t), f"results/{name}/cells.json, row {i + 1}") for t in row]
+        filled = [fill_cell(str(t), f"results/{name}/cells.json, row {i + 1}", tables) for t in row]
         rows.append([text for text, _ in filled])
         quoted += [q for _, qs in filled for q in qs]
     parts = list(dict.fromkeys(quoted))
-    provs = {part: table_of(part)[2] for part in parts}
+    provs = {part: tables[part][2] for part in parts}
     transcribed = [part for part, p in provs.items() if p.get("transcribed_from_docs")]
-
-    def joined(key: str) -> Optional[str]:
-        values = list(dict.fromkeys(str(p[key]) for p in provs.values() if p.get(key)))
-        return ", ".join(values) if values else None
 
     dates = sorted(d for p in provs.values() for d in re.findall(r"\d{4}-\d{2}-\d{2}", str(p.get("date", ""))))
     note = cells.get("note", "")
@@ -500,11 +512,10 @@ def _cells(name: str, spec: Spec) -> tuple[list[str], list[list[str]], dict[str,
         note += (f"{'; ' if note else ''}quoting tables still transcribed from reports ({', '.join(transcribed)}): "
                  f"they follow when those are regenerated")
     machines = list(dict.fromkeys(re.sub(r"\), .*$", ")", str(p["machine"])) for p in provs.values() if p.get("machine")))
-    commands = list(dict.fromkeys(c for p in provs.values() for c in ([p["command"]] if isinstance(p.get("command"), str)
-                                                                       else p.get("command") or [])))
     span = None if not dates else dates[0] if dates[0] == dates[-1] else f"{dates[0]} to {dates[-1]}"
-    prov = {"machine": " and ".join(machines) or None, "date": span, "command": commands or spec.command,
-            "commit": joined("commit"), "note": note, "parts": parts}
+    prov = {"machine": " and ".join(machines) or None, "date": span,
+            "command": _commands(list(provs.values())) or spec.command, "commit": _joined(list(provs.values()), "commit"),
+            "note": note, "parts": parts}
     if cells.get("command"):  # the commands in short (a summary of many tables): each source keeps its own
         prov.update(command=cells["command"], commit=None)
         prov["note"] += "; each source's provenance gives its exact command and commit"
@@ -518,8 +529,10 @@ def table_parts(name: str) -> list[str]:
         return []
     if spec.kind == "stack":
         return [part for _, part in spec.parts]
-    if spec.kind == "cells":
-        return list(table_of(name)[2]["parts"])
+    if spec.kind == "cells":  # read from the templates: rendering the table again would render every part again
+        cells = _read_json(RESULTS / name / "cells.json")
+        refs = [ref for row in cells.get("rows", []) for t in row for ref in cell_references(str(t))]
+        return list(dict.fromkeys(ref.split("|", 1)[0].strip() for ref in refs))
     return []
 
 
