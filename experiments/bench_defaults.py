@@ -177,10 +177,12 @@ def main(argv: Optional[list[str]] = None) -> None:
     out = out.expanduser().resolve()
     out.mkdir(parents=True, exist_ok=True)
     rows: list[dict[str, Any]] = []
+    worktree = None
     with tempfile.TemporaryDirectory(prefix="lnf-bench-") as tmp:
         checkouts = {"this checkout": ROOT}
         if args.baseline:
-            checkouts = {"baseline": baseline_worktree(args.baseline, Path(tmp)), **checkouts}
+            worktree = baseline_worktree(args.baseline, Path(tmp))
+            checkouts = {"baseline": worktree, **checkouts}
         try:
             for scene in args.scenes:
                 for name, path in checkouts.items():
@@ -203,7 +205,9 @@ def main(argv: Optional[list[str]] = None) -> None:
              f"diverged: test rollouts on the grid + on the scattered points.\n\n")
     text = where + table(rows)
     print(text)
-    write_text_atomic(out / "bench_defaults.json", json.dumps({"rows": rows}, indent=1))
+    write_text_atomic(out / "bench_defaults.json", json.dumps({"rows": rows,
+                                                               "baseline_worktree": worktree and str(worktree)},
+                                                              indent=1))
     write_text_atomic(out / "summary.md", text)
     print(f"[bench] wrote {out / 'summary.md'}")
 

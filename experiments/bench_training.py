@@ -230,11 +230,11 @@ def main(argv: list[str] | None = None) -> None:
     import torch
 
     torch.set_num_threads(args.threads)
-    peak, rows = 0.0, {}
+    peak, rows, worktree = 0.0, {}, None
     with tempfile.TemporaryDirectory(prefix="lnf-bench-") as tmp:
         checkouts = {"this checkout": ROOT}
         if args.baseline:
-            checkouts["baseline"] = baseline_worktree(args.baseline, Path(tmp))
+            checkouts["baseline"] = worktree = baseline_worktree(args.baseline, Path(tmp))
         try:  # rounds alternate the checkouts; each figure is the best (least disturbed) of its rounds
             for k in range(args.rounds):
                 peak = max(peak, matmul_peak())
@@ -264,7 +264,9 @@ def main(argv: list[str] | None = None) -> None:
     out = args.out or ROOT / "outputs" / "studies" / ("bench_training-smoke" if args.smoke else "bench_training")
     from lnf.tempfiles import write_text_atomic
 
-    write_text_atomic(out / "bench_training.json", json.dumps({"peak_flops": peak, "rows": rows}, indent=2))
+    write_text_atomic(out / "bench_training.json", json.dumps({"peak_flops": peak, "rows": rows,
+                                                               "baseline_worktree": worktree and str(worktree)},
+                                                              indent=2))
     write_text_atomic(out / "summary.md", text)
     print(f"[bench] wrote {out / 'summary.md'}; collect it with "
           f"`python experiments/results_tables.py --collect bench_training={out}`")
