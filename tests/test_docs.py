@@ -48,14 +48,29 @@ def links(path: Path) -> list[tuple[int, str]]:
     return out
 
 
-def test_site_builds_in_strict_mode(tmp_path):
+@pytest.fixture(scope="module")
+def site(tmp_path_factory):
+    """The site, built once for the tests of this file that read it (one xdist_group keeps them on one worker):
+    (the finished `mkdocs build --strict`, the site folder, the build's seconds)."""
+    out = tmp_path_factory.mktemp("docs") / "site"
     start = time.perf_counter()
-    proc = subprocess.run([sys.executable, "-m", "mkdocs", "build", "--strict", "--site-dir", str(tmp_path / "site")],
+    proc = subprocess.run([sys.executable, "-m", "mkdocs", "build", "--strict", "--site-dir", str(out)],
                           cwd=ROOT, capture_output=True, text=True, timeout=300,
                           env={**os.environ, "NO_MKDOCS_2_WARNING": "1"})
+    return proc, out, time.perf_counter() - start
+
+
+def _built(site) -> Path:
+    proc, out, _ = site
     assert proc.returncode == 0, ("mkdocs build --strict failed (pip install -e '.[dev]' installs mkdocs and its "
                                   "plugins):\n" + proc.stderr[-5000:])
-    site = tmp_path / "site"
+    return out
+
+
+@pytest.mark.xdist_group("docs_site")
+def test_site_builds_in_strict_mode(site):
+    seconds = site[2]
+    site = _built(site)
     for page in ["index.html", "method.html", "configuration.html", "own_system.html", "data_format.html",
                  "scaling.html", "results.html", "choices.html", "api.html", "changelog.html"]:
         assert (site / page).is_file(), page
@@ -64,7 +79,43 @@ def test_site_builds_in_strict_mode(tmp_path):
                  "lnf.mesh_io.read_mesh_series", "lnf.integrators.get_integrator", "lnf.metrics"]:
         assert name in api, f"the API reference has no {name}"
     assert "Keep a Changelog" in (site / "changelog.html").read_text()
-    assert time.perf_counter() - start < 120
+    assert seconds < 120
+
+
+# the modules of the model itself, which the README sends readers to, with one member each that the page must show
+MODEL_MODULES = {"lnf.siren": "lnf.siren.ModulatedSiren", "lnf.reduction": "lnf.reduction.reduce",
+                 "lnf.dynamics": "lnf.dynamics.ReducedDynamics", "lnf.tabulated": "lnf.tabulated.TabulatedDynamics"}
+# a Sphinx role as Markdown leaves it: `:meth:` before the rendered name (docs/_hooks/sphinx_roles.py rewrites them)
+RAW_ROLE = re.compile(r":(?:py:)?(?:meth|class|func|attr|mod|data|obj|exc):(?:<code>|`)")
+
+
+@pytest.mark.xdist_group("docs_site")
+def test_the_api_reference_covers_the_model_renders_roles_and_shows_types(site):
+    api = (_built(site) / "api.html").read_text()
+    for module, member in MODEL_MODULES.items():
+        assert f'id="{module}"' in api, f"the API reference leaves out {module}"
+        assert f'id="{member}"' in api, f"the API reference has no {member}"
+    raw = sorted({m.group(0) for m in RAW_ROLE.finditer(api)})
+    assert not raw, f"the API reference prints raw Sphinx roles: {raw}"
+    assert "<autoref" not in api, "a cross-reference of a docstring was left unprocessed"
+    assert 'href="#lnf.reduction.reduce"' in api, "the roles of the docstrings do not link to the objects they name"
+    start = api.index('id="lnf.reduction.reduce"')
+    signature = api[api.index('<div class="doc-signature', start):]
+    signature = re.sub(r"<[^>]+>", "", signature[:signature.index("</pre>")]).replace("&gt;", ">")
+    assert "steps: int" in signature and "-> Tensor" in signature, f"the signature shows no types: {signature}"
+
+
+def test_the_docs_write_no_latex_markup():
+    """The site renders no TeX: exponents and indices are Unicode (ℓʳ, q̃⁽⁰⁾, ∛2) or <sup>/<sub>, never ^{…} or _{…}."""
+    hits = []
+    for path in markdown_files()[2:]:
+        fenced = False
+        for number, line in enumerate(path.read_text().split("\n"), 1):
+            if re.match(r"^\s*(```|~~~)", line):
+                fenced = not fenced
+            elif not fenced and re.search(r"[\^_]\{", re.sub(r"`[^`]*`", "", line)):
+                hits.append(f"{path.relative_to(ROOT)}:{number}: {line.strip()[:100]}")
+    assert not hits, "TeX markup that the site prints as it stands:\n" + "\n".join(hits)
 
 
 def test_every_relative_link_resolves_inside_the_repository():

@@ -5,6 +5,7 @@ repository's conf/, and LICENSE, CITATION.cff and the py.typed marker are in pla
 import os
 import shutil
 import subprocess
+import sys
 from importlib.resources import files
 
 import pytest
@@ -199,3 +200,19 @@ def test_another_checkout_on_pythonpath_reads_its_own_configs(tmp_path):
     package, configs, width = proc.stdout.split()
     assert package == str(other / "lnf" / "__init__.py") and configs == str(other / "conf" / "__init__.py")
     assert int(width) == 77
+
+
+def test_python_dash_m_lnf_lists_the_entry_points(tmp_path, capsys):
+    """`python -m lnf` (lnf/__main__.py) prints the entry points and exits 0, from any directory; an unknown
+    command exits 2 and a sweep-table of a folder without jobs exits 1, each with a message."""
+    proc = subprocess.run([sys.executable, "-m", "lnf"], cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    for entry in ("python -m lnf.train", "python -m lnf.evaluate", "lnf-train", "lnf-evaluate", "python -m lnf.train -m",
+                  "sweep_table.csv", "python -m lnf sweep-table", "outputs/<scene>/runs/<date>/"):
+        assert entry in proc.stdout, f"python -m lnf does not list {entry}:\n{proc.stdout}"
+    assert set(_pyproject()["project"]["scripts"]) <= set(proc.stdout.split()), "a console script is not listed"
+
+    from lnf.__main__ import main
+
+    assert main(["no-such-command"]) == 2 and "unknown command" in capsys.readouterr().err
+    assert main(["sweep-table", str(tmp_path)]) == 1 and "holds no job" in capsys.readouterr().err

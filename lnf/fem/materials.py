@@ -90,7 +90,7 @@ class HyperelasticMaterial(ABC):
         return self.energy_density(F), self.first_piola(F)
 
     def tangent(self, F: Tensor) -> Tensor:
-        """A_{ijkl} = ∂P_ij/∂F_kl [Pa] (…, d, d, d, d), exact: one forward-mode derivative of :meth:`first_piola`
+        """A_ijkl = ∂P_ij/∂F_kl [Pa] (…, d, d, d, d), exact: one forward-mode derivative of :meth:`first_piola`
         per direction E_kl (d² batched calls)."""
         d = F.shape[-1]
         columns = []
