@@ -181,7 +181,7 @@ def tabulated_sweeps(study: S.Study) -> None:
                        "lnf.evaluate", {"method": "latent_mlp", "knob": "dt", "model.width": width})
 
 
-def simulator_seconds(ckpt: Path, threads: int) -> dict:
+def simulator_seconds(ckpt: Path, threads: int, trust: list[str] | None = None) -> dict:
     """Wall-clock per test trajectory of the scene's own full-order simulator over the test horizon (on a scene
     with an expensive reference, e.g. the elastic scenes' FEM), measured in this run (the faster of two): the
     ground truth, so its error is 0."""
@@ -191,7 +191,7 @@ def simulator_seconds(ckpt: Path, threads: int) -> dict:
     from scenes import datamodule_of, timed
 
     torch.set_num_threads(threads)
-    model = load(ckpt)
+    model = load(ckpt, trust=trust)
     split = datamodule_of(model).split("test")
     seconds, _ = timed(lambda: model.scene.simulate(split.states[:, 0], split.times))
     return {"simulator_seconds_per_trajectory": seconds / len(split.states), "trajectories": len(split.states),
@@ -495,7 +495,7 @@ def main(argv=None) -> None:
         if stored.is_file() and not study.fresh:
             simulator = json.loads(stored.read_text())
         else:
-            simulator = simulator_seconds(reference_checkpoint(study), study.threads)
+            simulator = simulator_seconds(reference_checkpoint(study), study.threads, study.trusted_modules())
             S.write_text_atomic(stored, json.dumps(simulator, indent=1))
     csv_path = study.write_csv("pareto.csv")
     study.finish([csv_path, *plot(study, rows, simulator), summary(study, rows, simulator)])

@@ -680,7 +680,10 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                              f"(or give --ckpt)")
         ckpt = found[-1]
         print(f"checkpoint: {ckpt} (the newest under {runs})")
-    model = load(ckpt)
+    # the scene of --config-dir/--scene was named by the user: its checkpoint may name that scene's module
+    trust = studylib.Study(name="scenes", scene=args.scene, mode="reduced", out=ROOT, threads=1,
+                           config_dir=config_dir).trusted_modules() if args.scene is not None else []
+    model = load(ckpt, trust=trust)
     model.eval()
     name = args.scene or model.scene.name
     out = Path(args.out).resolve() if args.out else ROOT / "outputs" / "scenes" / name

@@ -148,6 +148,13 @@ class Study:
             self._scene = build(OmegaConf.to_container(self.composed().scene, resolve=True))
         return self._scene
 
+    def trusted_modules(self) -> list[str]:
+        """The module of the study's scene when it is not one of lnf's: the study was asked to run that scene
+        (--config-dir, --scene), so the checkpoints it trains may name it (see lnf.trust)."""
+        target = str(self.composed().scene.get("_target_") or "")
+        top = target.split(".")[0]
+        return [top] if top and top != "lnf" else []
+
     def is_default_scene(self) -> bool:
         """Whether the study runs the default experiment (no --scene given, see :func:`default_experiment`)."""
         return self.scene == default_experiment()
@@ -174,6 +181,8 @@ class Study:
                  label: Optional[dict[str, Any]] = None) -> list[dict[str, Any]]:
         """Run (or reuse) one Hydra multirun into out/<sweep>; returns its rows (also kept in self.rows)."""
         folder = self.out / sweep
+        if entry == "lnf.evaluate" and self.trusted_modules():
+            overrides = [*overrides, f"trust=[{','.join(self.trusted_modules())}]"]
         cmd = [sys.executable, "-m", entry, *self.hydra_args(), "-m", *overrides, f"hydra.sweep.dir={folder}",
                "hydra.sweep.subdir=${hydra.job.num}"]
         stamp = folder / "command.json"

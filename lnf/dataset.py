@@ -9,8 +9,8 @@ Layout (``FORMAT_VERSION`` 2)::
     attrs: format_version (int), lnf_scene (json of scene.spec()), lnf_generation (json of the
            DatasetConfig), scene_name (str)
     /times                       (T,)            float64  [s], t_k = dt·k
-    /grids/fine                  (Nf, dim_B)     float32  midpoint grid, fine_resolution per axis
-    /grids/coarse                (Nc, dim_B)     float32  midpoint (or vertex) grid, coarse_resolution per axis
+    /grids/fine                  (Nf, dim_B)     float64  midpoint grid, fine_resolution per axis
+    /grids/coarse                (Nc, dim_B)     float64  midpoint (or vertex) grid, coarse_resolution per axis
     /{split}/states              (n, T, S)       float64
     /{split}/energy              (n, T)          float64  scene.true_energy
     /{split}/fields              (n, T, Nf, A)   float32  q on the fine grid
@@ -27,7 +27,9 @@ were given, and optionally ``/grids/weights`` (Nf,), ``/{split}/kinetic`` and ``
 verified before use but never regenerated.
 
 Every dataset carries the attribute ``lnf_checksum = "blake2b:<hex>"``: BLAKE2b (64-byte digest) of its
-values as little-endian bytes in C order (version 2 adds it; version 1 files are regenerated).
+values as little-endian bytes in C order (version 2 adds it; version 1 files are regenerated). The root attribute
+``lnf_attributes_checksum`` holds the checksum of each root attribute (``ROOT_ATTRIBUTES``): one edited after writing
+makes the file damaged (files without it, written by older lnf, are verified as before).
 
 Files are written atomically (temporary file, then ``os.replace``), so a file at the target path is
 always complete; a temporary left by a killed writer is removed by the next generation of that file.
@@ -70,6 +72,8 @@ SPLITS = ("train", "val", "test")
 COARSE_GRIDS = ("centres", "vertices")
 CHECKSUM_ATTR = "lnf_checksum"
 CHECKSUM_ALGORITHM = "blake2b"
+ATTRIBUTES_CHECKSUM_ATTR = "lnf_attributes_checksum"  # root attribute: json {attribute: checksum} of ROOT_ATTRIBUTES
+ROOT_ATTRIBUTES = ("format_version", "lnf_scene", "lnf_generation", "scene_name")
 FIELD_KEYS = ("fields", "velocities", "coarse_fields", "coarse_velocities")
 SPLIT_KEYS = ("states", "energy", "masks") + FIELD_KEYS
 OPTIONAL_SPLIT_KEYS = ("kinetic", "potential", "controls")  # only in files written from arrays
@@ -459,12 +463,145 @@ def _read_verified(f: h5py.File, path: Path, key: str) -> np.ndarray:
     return data
 
 
+def _attribute_value(f: h5py.File, name: str) -> Any:
+    """Root attribute `name` as a json-able value (the JSON ones parsed), or _MISSING."""
+    raw = f.attrs.get(name)
+    if raw is None:
+        return _MISSING
+    raw = raw.decode() if isinstance(raw, bytes) else raw
+    raw = raw.tolist() if isinstance(raw, (np.ndarray, np.generic)) else raw
+    if name in ("lnf_scene", "lnf_generation") and isinstance(raw, str):
+        try:
+            return json.loads(raw)
+        except ValueError:
+            return raw
+    return raw
+
+
+def _attribute_digest(value: Any) -> str:
+    """Checksum of one root attribute: BLAKE2b of its canonical JSON (sorted keys, so formatting does not count)."""
+    text = json.dumps(value, sort_keys=True, separators=(",", ":"))
+    return f"{CHECKSUM_ALGORITHM}:{hashlib.blake2b(text.encode()).hexdigest()}"
+
+
+def _verify_attributes(f: h5py.File, path: Path) -> None:
+    """The root attributes (format_version, lnf_scene, lnf_generation, scene_name) against the checksums stored
+    at write time in ``lnf_attributes_checksum``; a file written before that attribute existed is not checked.
+    A changed attribute → _Damaged naming the file and the attribute."""
+    raw = f.attrs.get(ATTRIBUTES_CHECKSUM_ATTR)
+    if raw is None:
+        return
+    try:
+        stored = json.loads(raw.decode() if isinstance(raw, bytes) else str(raw))
+        if not isinstance(stored, dict):
+            raise ValueError("not a JSON object")
+    except ValueError as exc:
+        raise _Damaged(f"{path}: root attribute {ATTRIBUTES_CHECKSUM_ATTR} is not a JSON object of checksums "
+                       f"({exc}); the file is corrupt") from exc
+    for name in ROOT_ATTRIBUTES:
+        digest = _attribute_digest(_attribute_value(f, name))
+        if str(stored.get(name)) != digest:
+            raise _Damaged(f"{path}: root attribute {name} does not match its checksum in {ATTRIBUTES_CHECKSUM_ATTR} "
+                           f"(stored {str(stored.get(name))[:24]}…, computed {digest[:24]}…): it was changed after "
+                           f"the file was written (e.g. edited by hand), so the settings it records no longer "
+                           f"describe the data")
+
+
+def _check_generation(f: h5py.File, path: Path, generation: Mapping[str, Any]) -> None:
+    """A file written from arrays: the counts, times and observation settings its ``lnf_generation`` records (which
+    training trusts) agree with its datasets; → _Damaged naming the file, the attribute key and both values. Holds
+    for files of any lnf version (train_times, which the datasets cannot tell, is covered by the attribute
+    checksum of newer files)."""
+    times = _dataset(f, path, "times")
+    n_points = _dataset(f, path, "grids/fine").shape[0]
+    found: dict[str, Any] = {"n_times": times.shape[0], "n_points": n_points}
+    found.update({f"n_{s}": _dataset(f, path, f"{s}/states").shape[0] for s in SPLITS if f"{s}/states" in f})
+    problems = [f"{key} = {json.dumps(generation[key])}, but the file holds {value}" for key, value in found.items()
+                if key in generation and generation[key] != value]
+    T = times.shape[0]
+    train_times = generation.get("train_times")
+    if train_times is not None and (isinstance(train_times, bool) or not isinstance(train_times, int)
+                                    or not 1 <= train_times <= T):
+        problems.append(f"train_times = {json.dumps(train_times)}, but the file holds {T} samples per trajectory "
+                        f"(expected an integer in [1, {T}])")
+    dt = generation.get("dt")
+    if dt is not None and T >= 2:
+        step = float(times[1] - times[0])
+        if not isinstance(dt, (int, float)) or not math.isclose(float(dt), step, rel_tol=1e-9):
+            problems.append(f"dt = {json.dumps(dt)}, but the stored times are {step!r} s apart")
+    fraction = generation.get("observed_fraction")
+    split = next((s for s in SPLITS if f"{s}/masks" in f and _dataset(f, path, f"{s}/masks").shape[0]), None)
+    if isinstance(fraction, (int, float)) and split is not None:
+        observed = int(_dataset(f, path, f"{split}/masks")[0].sum())
+        if int(round(fraction * n_points)) != observed:
+            problems.append(f"observed_fraction = {json.dumps(fraction)} (round({fraction}·{n_points}) points), but "
+                            f"each trajectory observes {observed}")
+    if problems:
+        raise _Damaged(f"{path}: root attribute lnf_generation disagrees with the data: {'; '.join(problems)} "
+                       f"(it was changed after the file was written)")
+
+
+def _points_hint(f: h5py.File) -> str:
+    """For a file whose points are stored in float32 (lnf before it stored them in float64): why they may collide."""
+    if f["grids/fine"].dtype != np.float32:
+        return ""
+    return ("; this file stores its points in float32, as lnf.trajectories.write_dataset did before storing "
+            "them in float64, which may have merged distinct points: write it again from your simulator's output")
+
+
+def float32_collisions(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Pairs of rows of `points` (N, dim) that are equal in float32 (the precision lnf's model trains in): index
+    arrays (a, b) and `same`, True where the pair is equal in float64 too (a point given twice), False where float32
+    merges two distinct points. The pairs are neighbours in sorted order, so they connect every group of equal
+    points."""
+    p64 = np.asarray(points, dtype=np.float64).reshape(len(points), -1)
+    p32 = p64.astype(np.float32)
+    order = np.lexsort(p32.T[::-1]) if p32.shape[1] else np.arange(len(p32))
+    ordered = p32[order]
+    hit = np.flatnonzero((ordered[1:] == ordered[:-1]).all(axis=1))
+    a, b = order[hit], order[hit + 1]
+    return a, b, (p64[a] == p64[b]).all(axis=1)
+
+
+def check_points(name: str, points: np.ndarray, values: Mapping[str, Any], hint: str = "") -> None:
+    """Refuse points the model cannot use as given: two distinct points that float32 makes one, and a point given
+    twice with different values in any of `values` (label → (n, T, N, A) array or HDF5 dataset). A point given
+    twice with the same values passes. DatasetError naming `name` (the file or argument) and an index pair."""
+    p = np.asarray(points, dtype=np.float64)
+    a, b, same = float32_collisions(p)
+    if not same.all():
+        k = int(np.flatnonzero(~same)[0])
+        i, j = sorted((int(a[k]), int(b[k])))
+        raise DatasetError(
+            f"{name}: {int((~same).sum())} pair(s) of distinct points become one point in float32, the precision "
+            f"lnf's model trains in, e.g. points {i} and {j}: {p[i].tolist()} and {p[j].tolist()} (both "
+            f"{p[i].astype(np.float32).tolist()} in float32); they would be silently merged. Shift and/or scale the "
+            f"coordinates (e.g. points - points.mean(axis=0), in a unit in which the body is about 1 across; the "
+            f"scene's bounds alike) and write the trajectories again{hint}")
+    if not same.any():
+        return
+    idx = np.unique(np.concatenate([a, b]))  # sorted, unique: the fancy index an HDF5 dataset takes
+    ia, ib = np.searchsorted(idx, a), np.searchsorted(idx, b)
+    for label, data in values.items():
+        sub = np.asarray(data[:, :, idx])
+        differ = sub[:, :, ia] != sub[:, :, ib]  # (n, T, pairs, A)
+        if differ.any():
+            t, k_time, k = (int(x) for x in np.argwhere(differ)[0][:3])
+            i, j = sorted((int(a[k]), int(b[k])))
+            raise DatasetError(
+                f"{name}: points {i} and {j} are the same point {p[i].tolist()}, given twice with different "
+                f"{label} (trajectory {t}, sample {k_time}: {sub[t, k_time, ia[k]].tolist()} against "
+                f"{sub[t, k_time, ib[k]].tolist()}); {int(differ.any(axis=(0, 1, 3)).sum())} such pair(s). Give each "
+                f"point once (drop the duplicates or average their values){hint}")
+
+
 # ---------------------------------------------------------------------------------------------------
 # generation
 # ---------------------------------------------------------------------------------------------------
 def _grid(scene: Any, resolution: int, kind: str = "centres") -> np.ndarray:
-    """The scene's observation points (N, dim_B) float32 at `resolution` (by default its box's midpoint grid;
-    `kind` "vertices": its box's vertex grid, see :class:`DatasetConfig`)."""
+    """The scene's observation points (N, dim_B) float64 at `resolution` (by default its box's midpoint grid;
+    `kind` "vertices": its box's vertex grid, see :class:`DatasetConfig`). float64, as stored: a mesh's nodes
+    rounded to float32 (0.15 → 0.150000006) can lie outside its cells, where the scene cannot evaluate its field."""
     if kind == "vertices":
         from lnf.scenes.base import Scene
 
@@ -472,14 +609,14 @@ def _grid(scene: Any, resolution: int, kind: str = "centres") -> np.ndarray:
         if own is not Scene.observation_points:
             raise DatasetError(f"scene {scene.name}: data.coarse_grid=vertices spans the scene's box, but this scene "
                                "gives its own observation points (observation_points); use data.coarse_grid=centres")
-        return vertex_grid(resolution, scene.bounds).cpu().numpy().astype(np.float32)
+        return vertex_grid(resolution, scene.bounds).cpu().numpy().astype(np.float64)
     if hasattr(scene, "observation_points"):
-        return np.asarray(scene.observation_points(resolution), dtype=np.float32)
-    return midpoint_grid(resolution, scene.bounds).cpu().numpy().astype(np.float32)
+        return np.asarray(scene.observation_points(resolution), dtype=np.float64)
+    return midpoint_grid(resolution, scene.bounds).cpu().numpy().astype(np.float64)
 
 
 def _scene_fields(scene: Any, states: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """q, q̇ (T, N, A) float32 of states (T, S) at float32 points (N, dim_B), evaluated in float64."""
+    """q, q̇ (T, N, A) float32 of states (T, S) at points (N, dim_B), evaluated in float64."""
     q, qdot = scene.fields(states, points.astype(np.float64))
     expected = (states.shape[0], points.shape[0], scene.field_dim)
     for name, arr in (("q", q), ("q̇", qdot)):
@@ -683,7 +820,7 @@ def _needed_bytes(n: int, T: int, S: int, Nf: int, Nc: int, dim: int, A: int) ->
     """An upper bound of the file's size: the arrays' bytes (n trajectories, T samples, S state entries,
     Nf/Nc points in dim_B = `dim`, A field components) + 1 %, 128 bytes of index per field chunk (HDF5 needs
     ~70), and 1 MiB of metadata."""
-    data = T * 8 + (Nf + Nc) * dim * 4 + n * (T * S * 8 + T * 8 + Nc + 2 * T * (Nf + Nc) * A * 4)
+    data = T * 8 + (Nf + Nc) * dim * 8 + n * (T * S * 8 + T * 8 + Nc + 2 * T * (Nf + Nc) * A * 4)
     return int(data * 1.01) + 128 * (4 * n * T) + (1 << 20)
 
 
@@ -787,11 +924,14 @@ def generate_dataset(scene: Any, cfg: DatasetConfig, path: str | os.PathLike) ->
 
 
 def write_root_attributes(f: h5py.File, scene_spec: Optional[dict], generation: dict, scene_name: str) -> None:
-    """The root attributes every lnf dataset carries (format version, scene spec, generation settings, name)."""
+    """The root attributes every lnf dataset carries (format version, scene spec, generation settings, name), and
+    the checksum of each (``lnf_attributes_checksum``), which verification compares: an edited attribute is found."""
     f.attrs["format_version"] = FORMAT_VERSION
     f.attrs["lnf_scene"] = json.dumps(scene_spec)
     f.attrs["lnf_generation"] = json.dumps(generation)
     f.attrs["scene_name"] = scene_name
+    f.attrs[ATTRIBUTES_CHECKSUM_ATTR] = json.dumps({name: _attribute_digest(_attribute_value(f, name))
+                                                    for name in ROOT_ATTRIBUTES})
 
 
 @contextlib.contextmanager
@@ -840,6 +980,7 @@ def _file_problem(path: Path, expected: dict[str, Any]) -> Optional[tuple[str, s
             diffs = _differences({k: found.get(k) for k in expected}, expected)
             if diffs:
                 return "mismatch", "; ".join(diffs)
+            _verify_attributes(f, path)
             _check_structure(f, path, SPLITS)
             _verify_all(f, path, SPLITS)
     except _Damaged as exc:
@@ -898,7 +1039,8 @@ def observed_index(masks: np.ndarray) -> np.ndarray:
 class TrajectorySplit:
     """One split of a dataset, in memory. n trajectories, T samples, Nf fine / Nc coarse points.
 
-    times (T,) [s]; fine_points (Nf, dim_B), coarse_points (Nc, dim_B) float32; states (n, T, S);
+    times (T,) [s]; fine_points (Nf, dim_B), coarse_points (Nc, dim_B) as stored (float64; float32 in older
+    files); states (n, T, S);
     energy (n, T); fields, velocities (n, T, Nf, A) float32; coarse_fields, coarse_velocities
     (n, T, Nc, A) float32; masks (n, Nc) bool; attrs: parsed root attributes.
     """
@@ -944,7 +1086,7 @@ class TrajectorySplit:
     def observed(self, max_time: int | None = None, velocities: bool = False) -> tuple[np.ndarray, ...]:
         """Each trajectory's masked coarse observations over its first `max_time` samples (all if None).
 
-        Returns points (n, Nobs, dim_B) float32 and values (n, T', Nobs, A) float32, and with
+        Returns points (n, Nobs, dim_B) (as stored) and values (n, T', Nobs, A) float32, and with
         `velocities` also the velocity fields (n, T', Nobs, A) at the same points.
         """
         T = self.times.shape[0]
@@ -974,6 +1116,7 @@ def load_split(path: str | os.PathLike, split: str, scene: Any = None,
         with _open(path) as f:
             attrs = _read_attributes(f, path)
             _check_version(path, attrs)
+            _verify_attributes(f, path)
             if (attrs.get("generation") or {}).get("source") == SOURCE_ARRAYS:
                 if scene is not None:
                     check_scene_fits(path, f, attrs, scene)
@@ -985,6 +1128,9 @@ def load_split(path: str | os.PathLike, split: str, scene: Any = None,
                                                                       "with, or regenerate it with these with "
                                                                       "lnf.dataset.ensure_dataset"))
             _check_structure(f, path, (split,))
+            arrays = (attrs.get("generation") or {}).get("source") == SOURCE_ARRAYS
+            if arrays:
+                _check_generation(f, path, attrs["generation"])
             data = {name: _read_verified(f, path, key) for name, key in (
                 ("times", "times"), ("fine_points", "grids/fine"), ("coarse_points", "grids/coarse"),
                 ("states", f"{split}/states"), ("energy", f"{split}/energy"), ("fields", f"{split}/fields"),
@@ -996,6 +1142,10 @@ def load_split(path: str | os.PathLike, split: str, scene: Any = None,
                 ("controls", f"{split}/controls"), ("weights", "grids/weights")) if key in f})
             if "energy" not in data:  # a file written from arrays without energies
                 data["energy"] = None
+            if arrays:  # points stored in float64: refused where float32 (the model's) would merge them
+                check_points(f"{path}: /grids/fine", data["fine_points"], {
+                    f"/{split}/fields": data["fields"], f"/{split}/velocities": data["velocities"]},
+                    _points_hint(f))
     except _Damaged as exc:
         hint = ARRAYS_HINT if (attrs.get("generation") or {}).get("source") == SOURCE_ARRAYS else LOAD_HINT
         raise DatasetError(f"{exc}; {hint}") from exc
@@ -1017,10 +1167,16 @@ def dataset_source(path: str | os.PathLike) -> Optional[str]:
 
 def stored_generation(path: str | os.PathLike) -> dict[str, Any]:
     """The generation settings a file records (``lnf_generation``): for a file written from arrays, its counts,
-    times and observation settings, which training takes from the file instead of ``data.*``."""
+    times and observation settings, which training takes from the file instead of ``data.*``. Checked against the
+    attribute checksums the file carries (an edited attribute → DatasetError naming the file and the attribute)."""
     path = Path(path)
     with _open(path) as f:
         generation = _read_attributes(f, path).get("generation")
+        try:
+            _verify_attributes(f, path)
+        except _Damaged as exc:
+            arrays = isinstance(generation, dict) and generation.get("source") == SOURCE_ARRAYS
+            raise DatasetError(f"{exc}; {ARRAYS_HINT if arrays else LOAD_HINT}") from exc
     if not isinstance(generation, dict):
         raise DatasetError(f"{path}: root attribute lnf_generation is missing; the file was not written by lnf")
     return generation
@@ -1059,10 +1215,17 @@ def verify_dataset(path: str | os.PathLike, scene: Any = None) -> Path:
         with _open(path) as f:
             attrs = _read_attributes(f, path)
             _check_version(path, attrs)
+            _verify_attributes(f, path)
             if scene is not None:
                 check_scene_fits(path, f, attrs, scene)
             _check_structure(f, path, SPLITS)
+            if _is_arrays_file(f):
+                _check_generation(f, path, attrs["generation"])
             _verify_all(f, path, SPLITS)
+            if _is_arrays_file(f):
+                check_points(f"{path}: /grids/fine", f["grids/fine"][...], {
+                    f"/{s}/{key}": f[f"{s}/{key}"] for s in SPLITS for key in ("fields", "velocities")},
+                    _points_hint(f))
     except _Damaged as exc:
         raise DatasetError(f"{exc}; {ARRAYS_HINT}") from exc
     log.info("verified dataset %s (written from arrays)", path)

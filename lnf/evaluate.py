@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import time
 from pathlib import Path
 from typing import Any, Optional
@@ -21,12 +22,14 @@ from lnf.config_keys import check_known_keys
 from lnf.dataset import (GROUND_TRUTH_FOLDER, SOURCE_ARRAYS, SPLITS, DatasetConfig, ensure_dataset, load_split,
                          simulated_ground_truth, stored_generation, verify_dataset)
 from lnf.decoding_table import check_decoding
-from lnf.evaluation import evaluate_rollouts, evaluation_cost, long_horizon_energy, quadrature_size
+from lnf.evaluation import (EvaluationCost, evaluate_rollouts, evaluation_cost, long_horizon_energy, quadrature_size,
+                            size_text)
 from lnf.model import build, load
 from lnf.quadrature import grid_shape_of, midpoint_grid
+from lnf.run_lock import run_folder_lock
 from lnf.training.callbacks import save_evaluation_figures, stored_reference, write_json_atomic
 from lnf.training.console import quiet_console
-from lnf.utils import print_summary, run_metadata
+from lnf.utils import check_numbers, print_summary, run_metadata
 
 log = logging.getLogger("lnf.evaluate")
 
@@ -110,14 +113,15 @@ def _is_number(value: Any) -> bool:
     return isinstance(value, (int, float)) and not isinstance(value, bool)
 
 
-def _number(cfg: DictConfig, key: str, expected: str, positive: bool, null: str = "") -> None:
-    """`key` must be a finite number (> 0 if `positive`, else ≥ 0), or null when `null` says what null means."""
+def _number(cfg: DictConfig, key: str, expected: str, positive: bool, null: str = "", unit: str = "s") -> None:
+    """`key` must be a finite number (> 0 if `positive`, else ≥ 0) [`unit`], or null when `null` says what null
+    means."""
     value = OmegaConf.select(cfg, key)
     if value is None and null:
         return
     if _is_number(value) and math.isfinite(value) and (value > 0 if positive else value >= 0):
         return
-    raise ValueError(f"{key} must be a finite number {'>' if positive else '≥'} 0 [s] ({expected})"
+    raise ValueError(f"{key} must be a finite number {'>' if positive else '≥'} 0 [{unit}] ({expected})"
                      f"{' or null (' + null + ')' if null else ''}, got {value!r}")
 
 
@@ -156,26 +160,219 @@ def check_settings(cfg: DictConfig) -> None:
     _integer(cfg, "grid.resolution", 1, "points per axis of grid.kind=uniform; below 1 the grid has no points")
     _integer(cfg, "grid.n_points", 1, "points of grid.kind=random; below 1 the grid has no points")
     _integer(cfg, "grid.seed", 0, "the seed of grid.kind=random")
+    _number(cfg, "max_memory_gb", "the memory the evaluation may hold", True,
+            f"the memory available now, or ${MEMORY_ENV}", unit="GB")
+    _integer(cfg, "max_steps", 1, "the most integration steps of one rollout, the time budget", "no limit")
+    check_numbers(cfg)  # every other number (integrator.tol, quadrature.*, dynamics.*, initial_states): finite, in range
+
+
+MEMORY_ENV = "LNF_MAX_MEMORY_GB"  # the memory lnf.evaluate may use [GB], where max_memory_gb is null
+GB = 2 ** 30
+
+
+def _meminfo_available() -> Optional[int]:
+    """MemAvailable of /proc/meminfo [bytes] (Linux), None elsewhere."""
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemAvailable:"):
+                return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return None
+
+
+def _cgroup_room() -> Optional[int]:
+    """Bytes left under this process's cgroup memory limit (v2 memory.max, v1 limit_in_bytes), None without one."""
+    for limit, usage in (("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory.current"),
+                         ("/sys/fs/cgroup/memory/memory.limit_in_bytes", "/sys/fs/cgroup/memory/memory.usage_in_bytes")):
+        try:
+            text = Path(limit).read_text().strip()
+            if text == "max" or int(text) >= 2 ** 60:  # no limit
+                continue
+            return max(int(text) - int(Path(usage).read_text().strip()), 0)
+        except (OSError, ValueError):
+            continue
+    return None
+
+
+def available_memory() -> tuple[Optional[int], str]:
+    """The memory [bytes] this process may still allocate, and where the figure comes from: MemAvailable of
+    /proc/meminfo (lowered to the room under a cgroup memory limit), else os.sysconf's available pages (physical
+    pages where the system has no count of available ones); (None, why) where none can be read."""
+    found = [(v, where) for v, where in ((_meminfo_available(), "MemAvailable of /proc/meminfo"),
+                                         (_cgroup_room(), "the room under the cgroup memory limit")) if v is not None]
+    if found:
+        return min(found)
+    for pages, where in (("SC_AVPHYS_PAGES", "available"), ("SC_PHYS_PAGES", "physical")):
+        try:
+            return int(os.sysconf(pages)) * int(os.sysconf("SC_PAGE_SIZE")), f"the machine's {where} memory (os.sysconf)"
+        except (ValueError, OSError, AttributeError):
+            continue
+    return None, "the available memory could not be read"
+
+
+def memory_limit(cfg: DictConfig) -> tuple[Optional[int], str]:
+    """The memory [bytes] an evaluation may hold and what set it: max_memory_gb, else $LNF_MAX_MEMORY_GB, else the
+    memory available now (:func:`available_memory`; None where it cannot be read)."""
+    if cfg.get("max_memory_gb") is not None:
+        return int(float(cfg.max_memory_gb) * GB), f"max_memory_gb={cfg.max_memory_gb}"
+    env = os.environ.get(MEMORY_ENV, "").strip()
+    if env:
+        try:
+            value = float(env)
+        except ValueError:
+            value = float("nan")
+        if not (math.isfinite(value) and value > 0):
+            raise ValueError(f"${MEMORY_ENV}={env!r} must be a finite number > 0 [GB] (the memory lnf.evaluate may "
+                             f"use); unset it to use the memory available now")
+        return int(value * GB), f"${MEMORY_ENV}={env}"
+    found, where = available_memory()
+    return found, f"the memory available now, {where}; set max_memory_gb=<GB> or ${MEMORY_ENV} to change it"
+
+
+def planned_cost(cfg: DictConfig, model: Any, data: dict[str, Any], split: Any = None
+                 ) -> tuple[EvaluationCost, Optional[float], Optional[float]]:
+    """What the evaluation asked for will cost, computed from sizes alone (nothing allocated): its
+    :class:`EvaluationCost` (trajectories, frames, points, integration steps, memory) and the dt and horizon [s] it
+    rolls out over (None where unknown). Before the data are loaded (`split` None) the sizes come from the settings
+    and the checkpoint's record of its data, unknown ones counted as 1 (a lower bound); with `split`, from the data."""
+    scene = model.scene
+    dim = len(scene.bounds)
+    generated = data.get("source") != SOURCE_ARRAYS
+    record = data if generated else {}
+    if cfg.get("initial_states") is not None:
+        n = len(read_initial_states(cfg.initial_states))
+    else:
+        n = len(split) if split is not None else int(record.get(f"n_{cfg.split}") or 1)
+        if cfg.get("max_trajectories") is not None:
+            n = min(n, int(cfg.max_trajectories))
+    if split is not None:
+        data_dt, data_frames = float(split.times[1] - split.times[0]), len(split.times)
+    else:
+        data_dt = float(record["dt"]) if record.get("dt") else None
+        data_frames = int(record["n_times"]) if record.get("n_times") else None
+    dt = float(cfg.dt) if cfg.get("dt") is not None else data_dt
+    horizon = float(cfg.horizon) if cfg.get("horizon") is not None else \
+        (data_frames * data_dt if data_frames and data_dt else None)
+    frames = int(round(horizon / dt)) if dt and horizon else (data_frames or 1)
+    kind = OmegaConf.select(cfg, "grid.kind", default="stored")
+    if kind == "uniform":
+        points = int(cfg.grid.resolution) ** dim
+    elif kind == "random":
+        points = int(cfg.grid.n_points)
+    elif split is not None:
+        points = len(split.fine_points)
+    else:
+        points = int(record["fine_resolution"]) ** dim if record.get("fine_resolution") else 1
+    state_dim = split.states.shape[-1] if split is not None else len(getattr(scene, "state_names", ()) or ())
+    substeps = int(OmegaConf.select(cfg, "integrator.substeps", default=1) or 1)
+    long_steps = int(cfg.get("long_steps") or 0)
+    cost = evaluation_cost(max(n, 1), max(frames, 1), max(points, 1), scene.field_dim, keep_fields=int(cfg.figures),
+                           substeps=substeps, state_dim=state_dim, latent_dim=model.latent_dim, body_dim=dim,
+                           long_trajectories=min(int(cfg.long_trajectories), max(n, 1)) if long_steps > 0 else 0,
+                           long_steps=long_steps)
+    return cost, dt, horizon
+
+
+def _shown(value: Any) -> str:
+    """A setting as it would be typed: null, 1e+09, 0.05, 64."""
+    if value is None:
+        return "null"
+    return f"{value:g}" if _is_number(value) else str(value)
+
+
+def check_budget(cfg: DictConfig, cost: EvaluationCost, dt: Optional[float], horizon: Optional[float]) -> None:
+    """Refuse, before anything is loaded, simulated or rolled out, an evaluation over the time budget (``max_steps``
+    integration steps per rollout, integrator.substeps counted) or over the memory it may hold (:func:`memory_limit`),
+    naming the setting, its value, the estimate, the limit and what to change."""
+    k = cost.substeps
+    max_steps = cfg.get("max_steps")
+    span = (f"horizon={_shown(cfg.get('horizon'))}"
+            f"{f' (the data’s: {horizon:g} s)' if cfg.get('horizon') is None and horizon else ' [s]'} at "
+            f"dt={_shown(cfg.get('dt'))}"
+            f"{f' (the data’s: {dt:g} s)' if cfg.get('dt') is None and dt else ' [s]'}")
+    if max_steps is not None and cost.rollout_steps > int(max_steps):
+        raise ValueError(f"{span} is {cost.frames} frames: with integrator.substeps={k} the rollout takes "
+                         f"{cost.rollout_steps:.4g} integration steps per trajectory, over max_steps={max_steps} (the "
+                         f"time budget of lnf.evaluate): lower horizon, raise dt"
+                         f"{', lower integrator.substeps' if k > 1 else ''}, or raise max_steps (null: no limit) if "
+                         f"you mean to wait for it")
+    if max_steps is not None and cost.long_rollout_steps > int(max_steps):
+        raise ValueError(f"long_steps={_shown(cfg.long_steps)} with integrator.substeps={k} is "
+                         f"{cost.long_rollout_steps:.4g} integration steps, over max_steps={max_steps} (the time "
+                         f"budget of lnf.evaluate): lower long_steps (0 skips the long-horizon check)"
+                         f"{' or integrator.substeps' if k > 1 else ''}, or raise max_steps (null: no limit) if you "
+                         f"mean to wait for it")
+    limit, where = memory_limit(cfg)
+    if limit is None:
+        log.info("the memory the evaluation may use is not checked: %s (set max_memory_gb to check it)", where)
+        return
+    if cost.rollout_memory_bytes > limit:
+        grid = {"uniform": f"grid.kind=uniform, grid.resolution={_shown(cfg.grid.resolution)}",
+                "random": f"grid.kind=random, grid.n_points={_shown(cfg.grid.n_points)}"}.get(
+            cfg.grid.kind, "grid.kind=stored")
+        raise ValueError(
+            f"the evaluation would hold about {size_text(cost.rollout_memory_bytes)} ({cost.trajectories} trajectories "
+            f"× {cost.frames} frames × {cost.points} points"
+            f"{f' × {cost.field_dim} components' if cost.field_dim > 1 else ''}: {span}, {grid}, "
+            f"max_trajectories={_shown(cfg.get('max_trajectories'))}, figures={_shown(cfg.figures)}), over the limit "
+            f"of {size_text(limit)} ({where}): lower horizon or max_trajectories, raise dt, evaluate on fewer points "
+            f"(grid.resolution, grid.n_points or grid.kind=stored) or keep fewer figures; or raise "
+            f"max_memory_gb if the machine has the memory")
+    if cost.long_memory_bytes > limit:
+        raise ValueError(f"long_steps={_shown(cfg.long_steps)} × long_trajectories={cost.long_trajectories} would "
+                         f"hold about {size_text(cost.long_memory_bytes)} of recorded states and energies, over the "
+                         f"limit of {size_text(limit)} ({where}): lower long_steps or long_trajectories, or raise max_memory_gb "
+                         f"if the machine has the memory")
 
 
 def evaluate(cfg: DictConfig) -> dict[str, float]:
     """Evaluate `cfg.ckpt_path`; returns the metrics (also written to metrics.json).
 
     Unknown keys and bad settings are refused first (:func:`check_settings`); a figure that cannot be drawn is
-    a warning, after metrics.json and run.json are written.
+    a warning, after metrics.json and run.json are written. Another run in the same output folder at the same
+    time is refused (:mod:`lnf.run_lock`); an earlier run's results there are moved aside before any work
+    (:func:`set_aside_earlier_results`), so the folder never mixes two commands' files.
     """
+    with run_folder_lock(Path(cfg.paths.output_dir), "python -m lnf.evaluate"):
+        return _evaluate(cfg)
+
+
+RESULT_NAMES = ("metrics.json", "run.json", "figures")  # what an evaluation writes in its output folder
+
+
+def set_aside_earlier_results(output_dir: Path) -> Optional[Path]:
+    """Move an earlier run's metrics.json, run.json and figures/ in `output_dir` to ``previous/<time>/`` (nothing
+    is deleted), so that a run killed before its end never leaves its files beside another command's."""
+    found = [output_dir / name for name in RESULT_NAMES if (output_dir / name).exists()]
+    if not found:
+        return None
+    stamp = time.strftime("%Y-%m-%d_%H-%M-%S")
+    dest, k = output_dir / "previous" / stamp, 1
+    while dest.exists():
+        dest, k = output_dir / "previous" / f"{stamp}_{k}", k + 1
+    dest.mkdir(parents=True)
+    for item in found:
+        item.replace(dest / item.name)
+    log.info("moved the results of an earlier run in %s (%s) to %s", output_dir,
+             ", ".join(p.name for p in found), dest)
+    return dest
+
+
+def _evaluate(cfg: DictConfig) -> dict[str, float]:
     quiet_console()
     check_settings(cfg)
     keep_freed_memory()  # reuse freed decoding buffers (lnf/allocator.py)
     if cfg.get("threads"):
         torch.set_num_threads(int(cfg.threads))
     output_dir = Path(cfg.paths.output_dir)
-    model = load(cfg.ckpt_path)
+    model = load(cfg.ckpt_path, trust=list(cfg.get("trust") or []))  # a checkpoint's own classes run only if trusted
     scene = model.scene
     choose_dynamics(model, cfg.get("dynamics"), cfg.ckpt_path)
     data = dict(model.checkpoint.get("data") or {})
     if not data:
         raise ValueError(f"checkpoint {cfg.ckpt_path} records no data settings; cannot find its test trajectories")
+    check_budget(cfg, *planned_cost(cfg, model, data))  # before any data are loaded or simulated
     path = Path(data.pop("path"))
     on_mismatch = data.pop("on_mismatch", "regenerate")
     explicit = bool(data.pop("explicit_path", False))  # a shared file of another run's settings is not overwritten
@@ -198,6 +395,7 @@ def evaluate(cfg: DictConfig) -> dict[str, float]:
     horizon = float(cfg.horizon) if cfg.horizon is not None else float(split.times[-1] + split.times[1] - split.times[0])
     if dt <= 0 or horizon <= dt:
         raise ValueError(f"need dt > 0 and horizon > dt, got dt={dt}, horizon={horizon}")
+    check_budget(cfg, *planned_cost(cfg, model, data, split))  # the data's own sizes, before simulating
     train_horizon = float(cfg.train_horizon) if cfg.train_horizon is not None else float(split.times[split.train_times])
     times = dt * np.arange(int(round(horizon / dt)))
     stored_times = len(times) == len(split.times) and np.allclose(times, split.times)
@@ -228,11 +426,18 @@ def evaluate(cfg: DictConfig) -> dict[str, float]:
     # what it will cost, before anything is simulated or rolled out
     cost = evaluation_cost(n, len(times), len(points), scene.field_dim, keep_fields=int(cfg.figures),
                            quadrature_points=quadrature_size(model, quadrature),
-                           trained_quadrature_points=quadrature_size(model))
+                           trained_quadrature_points=quadrature_size(model),
+                           substeps=int(integrator.get("substeps", 1) or 1), state_dim=split.states.shape[-1],
+                           latent_dim=model.latent_dim, body_dim=len(scene.bounds),
+                           long_trajectories=min(int(cfg.long_trajectories), n) if int(cfg.long_steps) > 0 else 0,
+                           long_steps=int(cfg.long_steps))
     log.info("evaluating %s", cost.describe())
     if int(cfg.long_steps) > 0:
-        log.info("then the long-horizon energy check: %d trajectories × %d steps", min(int(cfg.long_trajectories), n),
-                 int(cfg.long_steps))
+        log.info("then the long-horizon energy check: %d trajectories × %d steps (%d integration steps with "
+                 "integrator.substeps=%d)", cost.long_trajectories, cost.long_steps, cost.long_rollout_steps,
+                 cost.substeps)
+    set_aside_earlier_results(output_dir)
+    write_json_atomic(output_dir / "run.json", run_metadata(cfg))  # provenance first: a killed run says what it was
     if stored_times:
         states = split.states[:n]
     else:

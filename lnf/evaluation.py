@@ -1,8 +1,8 @@
 """Reduced rollouts on held-out trajectories and their metrics (shared by the callback and `lnf.evaluate`).
 
-Protocol (docs/method.md §7.2): q̃0 = ρ̃(q(t0)) and q̃̇0 = (dφ)^{†,ω0} q̇(t0) from the fields on the evaluation
-points; roll the reduced dynamics out over all samples; decode on the evaluation points; compare with
-the true fields, with the projected reference q̃_ref(t) = ρ̃(q(t)) and with the true energies.
+Protocol (docs/method.md §7.2): q̃0 = ρ̃(q(t0)) and q̃̇0 = (dφ)† q̇(t0) († the ω0-weighted pseudo-inverse)
+from the fields on the evaluation points; roll the reduced dynamics out over all samples; decode on the evaluation
+points; compare with the true fields, with the projected reference q̃_ref(t) = ρ̃(q(t)) and with the true energies.
 """
 from __future__ import annotations
 
@@ -19,6 +19,7 @@ from torch import Tensor
 from lnf import metrics as M
 from lnf.decoding_table import DecodingTable, TabulatedField, check_decoding, code_box
 from lnf.integrators import Integrator, get_integrator
+from lnf.integrators.base import NOT_A_STEP_SIZE_PROBLEM
 from lnf.progress import progress_bar
 from lnf.reduced_model import ReducedModel
 from lnf.quadrature import Quadrature, QuadratureRule
@@ -93,13 +94,54 @@ def divergence_steps(diverged_step: "Tensor | np.ndarray", non_finite: Optional[
     return steps
 
 
+@torch.no_grad()
+def initial_state_causes(model: ReducedModel, dynamics: object, q0: Tensor, v0: Tensor, rows: "list[int] | np.ndarray",
+                         quadrature: "Quadrature | QuadratureRule | None" = None) -> dict[int, str]:
+    """For the trajectories `rows` (diverged ones), what is already non-finite at their initial reduced state
+    (q̃0, q̃̇0) (B, d), by trajectory: the state itself (ρ̃ of the initial fields), the potential Ṽ(q̃0) (the scene's
+    potential), the kinetic energy T̃ (the scene's mass density), or the acceleration of `dynamics` (after a rollout
+    has set its controls). Trajectories with a finite start are left out: they diverged on the way."""
+    rows = [int(r) for r in rows]
+    if not rows:
+        return {}
+    causes: dict[int, str] = {}
+    state_ok = torch.isfinite(q0).all(-1) & torch.isfinite(v0).all(-1)
+    safe_q = torch.where(state_ok[:, None], q0, torch.zeros_like(q0))
+    safe_v = torch.where(state_ok[:, None], v0, torch.zeros_like(v0))
+    try:
+        kin, pot = chunked_energy(model, safe_q, safe_v, quadrature)
+    except Exception:  # noqa: BLE001 - a diagnosis only
+        kin = pot = torch.zeros(len(q0), dtype=q0.dtype, device=q0.device)
+    try:
+        acc = dynamics.acceleration(safe_q, safe_v, 0.0)
+        acc_ok = torch.isfinite(acc).all(-1)
+    except Exception:  # noqa: BLE001
+        acc_ok = torch.ones(len(q0), dtype=torch.bool, device=q0.device)
+    for r in rows:
+        if not bool(state_ok[r]):
+            causes[r] = ("its initial reduced state (q̃0, q̃̇0) is non-finite: ρ̃ of the initial fields gave NaN or inf "
+                         "(the initial state, the scene's fields there, or the model's reduction)")
+        elif not bool(torch.isfinite(pot[r])):
+            causes[r] = (f"the potential energy Ṽ(q̃0) is {float(pot[r]):g} at its initial state: the scene's "
+                         f"potential is non-finite there")
+        elif not bool(torch.isfinite(kin[r])):
+            causes[r] = (f"the kinetic energy T̃(q̃0, q̃̇0) is {float(kin[r]):g} at its initial state: the scene's mass "
+                         f"density (or the model's φ) is non-finite there")
+        elif not bool(acc_ok[r]):
+            causes[r] = ("the acceleration is non-finite at its initial state: the pulled-back potential or mass "
+                         "(the scene's potential or mass density, or the model) is NaN or inf there")
+    return causes
+
+
 def divergence_metrics(steps: np.ndarray, dt: float, t0: float = 0.0, suffix: str = "",
-                       label: str = "rollout") -> dict[str, float]:
+                       label: str = "rollout", causes: Optional[dict[int, str]] = None) -> dict[str, float]:
     """`diverged_count`, `diverged_fraction`, `first_divergence_step` and `first_divergence_time` [s] (+ `suffix`)
     from per-trajectory divergence steps (n,) (−1: stayed finite; see :func:`divergence_steps`).
 
     The first step and time are the earliest over the trajectories; both are −1.0 when none diverged (JSON has
-    no NaN). A divergence is also logged as a warning (logger ``lnf.evaluation``) naming the `label`ed rollout.
+    no NaN). A divergence is also logged as a warning (logger ``lnf.evaluation``) naming the `label`ed rollout;
+    trajectories in `causes` (see :func:`initial_state_causes`) were non-finite at their initial state already, and
+    the warning names that cause instead of suggesting a smaller step.
     """
     steps = np.asarray(steps).reshape(-1)
     hit = steps >= 0
@@ -108,10 +150,20 @@ def divergence_metrics(steps: np.ndarray, dt: float, t0: float = 0.0, suffix: st
     when = float(t0 + first * dt) if count else -1.0
     if count:
         which = np.flatnonzero(hit).tolist()
+        causes = {r: c for r, c in (causes or {}).items() if r in which}
+        on_the_way = [r for r in which if r not in causes]
+        hints = []
+        for cause in dict.fromkeys(causes.values()):
+            rows = [r for r, c in causes.items() if c == cause]
+            hints.append(f"trajectories {rows[:10]}{' …' if len(rows) > 10 else ''}: {cause}")
+        if causes:
+            hints.append(NOT_A_STEP_SIZE_PROBLEM)
+        if on_the_way:
+            hints.append(f"{'trajectories ' + str(on_the_way[:10]) + (' …' if len(on_the_way) > 10 else '') + ': ' if causes else ''}"
+                         f"try a smaller dt, integrator.substeps or another integrator")
         log.warning("%s: %d of %d trajectories diverged (non-finite or exploding state or energy), the first at "
-                    "step %d (t = %.6g s, dt = %g s); trajectories %s%s. Try a smaller dt, integrator.substeps or "
-                    "another integrator.", label, count, len(steps), first, when, dt, which[:10],
-                    " …" if len(which) > 10 else "")
+                    "step %d (t = %.6g s, dt = %g s); trajectories %s%s. %s.", label, count, len(steps), first, when,
+                    dt, which[:10], " …" if len(which) > 10 else "", ". ".join(h[:1].upper() + h[1:] for h in hints))
     return {f"diverged_count{suffix}": float(count), f"diverged_fraction{suffix}": count / max(len(steps), 1),
             f"first_divergence_step{suffix}": float(first), f"first_divergence_time{suffix}": when}
 
@@ -171,6 +223,45 @@ class EvaluationCost:
     block_frames: int
     quadrature_points: Optional[int] = None
     trained_quadrature_points: Optional[int] = None  # the checkpoint's own rule, when another one is evaluated
+    substeps: int = 1  # integration steps per frame (integrator.substeps)
+    state_dim: int = 0  # S of the full-order states held (n, T, S); 0 where none are
+    latent_dim: int = 1
+    body_dim: int = 1  # coordinates per evaluation point
+    long_trajectories: int = 0  # the long-horizon energy check: trajectories × long_steps, recorded every 10th
+    long_steps: int = 0
+    record_every: int = 10
+
+    @property
+    def rollout_steps(self) -> int:
+        """Integration steps of each trajectory's rollout: (frames − 1) × substeps (batched over trajectories)."""
+        return max(self.frames - 1, 0) * self.substeps
+
+    @property
+    def long_rollout_steps(self) -> int:
+        """Integration steps of the long-horizon energy check: long_steps × substeps."""
+        return self.long_steps * self.substeps
+
+    @property
+    def rollout_memory_bytes(self) -> int:
+        """About what the evaluation of the rollouts holds at most, besides the model: :attr:`peak_bytes` of fields,
+        the evaluation points (float64 and float32 copies), the full-order states (n, T, S) in float64 (twice, while
+        simulated), the reduced trajectories and references (n, T, d) in a few copies and a dozen per-frame
+        arrays (n, T) in float64 (errors, norms, energies)."""
+        frames = self.trajectories * self.frames
+        return (self.peak_bytes + 16 * self.points * self.body_dim + 8 * self.frames
+                + 16 * frames * self.state_dim + 48 * frames * self.latent_dim + 128 * frames)
+
+    @property
+    def long_memory_bytes(self) -> int:
+        """About what the long-horizon energy check holds: its recorded states (q̃, q̃̇ and copies) and energies."""
+        records = self.long_steps // max(self.record_every, 1) + 1
+        return self.long_trajectories * records * (32 * self.latent_dim + 48)
+
+    @property
+    def memory_bytes(self) -> int:
+        """The larger of the two parts (they run one after the other): what :func:`lnf.evaluate` checks against the
+        memory it may use."""
+        return max(self.rollout_memory_bytes, self.long_memory_bytes)
 
     @property
     def field_bytes(self) -> int:
@@ -197,11 +288,22 @@ class EvaluationCost:
             ratio = self.quadrature_points / self.trained_quadrature_points
             quad += (f" (the checkpoint's rule has {self.trained_quadrature_points}: the rollout costs about "
                      f"{ratio:.3g}× as much)")
+        steps = (f"; the rollout takes {self.rollout_steps} integration steps per trajectory ({self.frames - 1} "
+                 f"sample intervals × integrator.substeps={self.substeps})")
+        long = (f"; the long-horizon check {self.long_rollout_steps} steps ({self.long_steps} × {self.substeps}) of "
+                f"{self.long_trajectories} trajector{'y' if self.long_trajectories == 1 else 'ies'}"
+                if self.long_steps > 0 and self.long_trajectories > 0 else "")
         return (f"{self.trajectories} trajectories × {self.frames} frames × {self.points} points"
                 f"{f' × {self.field_dim} components' if self.field_dim > 1 else ''}: the predicted fields are "
                 f"{_size(self.field_bytes)} in float32 (the true and projected ones as much again); decoded "
                 f"{self.block_frames} frames at a time, keeping the fields of {self.kept_trajectories} "
-                f"trajector{'y' if self.kept_trajectories == 1 else 'ies'}: about {_size(self.peak_bytes)} at most{quad}")
+                f"trajector{'y' if self.kept_trajectories == 1 else 'ies'}: about {_size(self.peak_bytes)} at most "
+                f"({_size(self.memory_bytes)} with the states, codes and energies){steps}{long}{quad}")
+
+
+def size_text(n_bytes: float) -> str:
+    """A size in words: 512 B, 1.5 KB, 43.2 MB, 7.1 GB (GB however large)."""
+    return _size(n_bytes)
 
 
 def _size(n_bytes: float) -> str:
@@ -214,12 +316,18 @@ def _size(n_bytes: float) -> str:
 
 def evaluation_cost(n: int, frames: int, n_points: int, field_dim: int, keep_fields: Optional[int] = None,
                     snapshot_chunk: int = 32, quadrature_points: Optional[int] = None,
-                    trained_quadrature_points: Optional[int] = None) -> EvaluationCost:
-    """The :class:`EvaluationCost` of :func:`evaluate_rollouts` with these sizes (printed by ``lnf.evaluate`` before
-    it rolls out)."""
+                    trained_quadrature_points: Optional[int] = None, substeps: int = 1, state_dim: int = 0,
+                    latent_dim: int = 1, body_dim: int = 1, long_trajectories: int = 0,
+                    long_steps: int = 0) -> EvaluationCost:
+    """The :class:`EvaluationCost` of :func:`evaluate_rollouts` (and of a :func:`long_horizon_energy` check of
+    `long_trajectories` × `long_steps`) with these sizes, each step taken as `substeps` integration steps (printed
+    and checked by ``lnf.evaluate`` before it loads data or rolls out). Plain integer arithmetic: sizes too large
+    to allocate are described, not allocated."""
     keep = n if keep_fields is None else min(max(int(keep_fields), 0), n)
     block = min(frame_block(n_points, field_dim, decode_batch(n_points, snapshot_chunk)), max(n * frames, 1))
-    return EvaluationCost(n, frames, n_points, field_dim, keep, block, quadrature_points, trained_quadrature_points)
+    return EvaluationCost(n, frames, n_points, field_dim, keep, block, quadrature_points, trained_quadrature_points,
+                          int(substeps), int(state_dim), int(latent_dim), int(body_dim), int(long_trajectories),
+                          int(long_steps))
 
 
 def _frame_sq(x: np.ndarray, weights: np.ndarray) -> np.ndarray:
@@ -503,8 +611,9 @@ def evaluate_rollouts(
     metrics["vpt/median"] = float(np.median(vpt))
     metrics["vpt/min"] = float(np.min(vpt))
     metrics.pop("vpt/max", None)
-    metrics.update(divergence_metrics(divergence_steps(traj.diverged_step, ~np.isfinite(kin + pot)), dt,
-                                      float(times[0]), label=label))
+    diverged = divergence_steps(traj.diverged_step, ~np.isfinite(kin + pot))
+    metrics.update(divergence_metrics(diverged, dt, float(times[0]), label=label, causes=initial_state_causes(
+        model, dynamics, q0, v0, np.flatnonzero(diverged >= 0), quadrature)))
     metrics["rollout_seconds_per_trajectory"] = rollout_seconds / n
     metrics["rollout_seconds_per_step"] = rollout_seconds / max(T - 1, 1)
     metrics["decode_seconds_per_trajectory"] = decode_seconds / n  # all T frames on the N evaluation points
@@ -579,5 +688,8 @@ def long_horizon_energy(
     out = {f"energy_drift_long/{k}": v for k, v in M.summarize(drift).items()}
     out["energy_drift_long/steps"] = float(steps)
     out["energy_drift_long/seconds"] = seconds
-    out.update(divergence_metrics(diverged, dt, suffix="_long", label="long-horizon energy check"))
+    out.update(divergence_metrics(diverged, dt, suffix="_long", label="long-horizon energy check",
+                                  causes=initial_state_causes(model, model.dynamics(quadrature) if
+                                                              (diverged >= 0).any() else None, q0, v0,
+                                                              np.flatnonzero(diverged >= 0), quadrature)))
     return out

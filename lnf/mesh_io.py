@@ -19,8 +19,21 @@ from lnf.trajectories import Trajectories
 
 # meshio cell types whose measure :func:`nodal_volumes` computes, by the body dimension they fill
 SIMPLEX_CELLS = {"line": 1, "triangle": 2, "tetra": 3}
+# linear cells split into simplices (meshio's, i.e. VTK's, corner order) for their measure; each node gets an
+# equal share of the whole cell's
 SPLIT_CELLS = {"quad": (2, [(0, 1, 2), (0, 2, 3)]),
-               "hexahedron": (3, [(0, 1, 3, 4), (1, 2, 3, 6), (1, 4, 5, 6), (3, 4, 6, 7), (1, 3, 4, 6)])}
+               "hexahedron": (3, [(0, 1, 3, 4), (1, 2, 3, 6), (1, 4, 5, 6), (3, 4, 6, 7), (1, 3, 4, 6)]),
+               "wedge": (3, [(0, 1, 2, 3), (1, 2, 3, 4), (2, 3, 4, 5)]),
+               "pyramid": (3, [(0, 1, 2, 4), (0, 2, 3, 4)])}
+# quadratic cells (meshio's node order, VTK's: corners, then the edges' nodes), split into the linear simplices of
+# all their nodes; each gives an equal share of its measure to its own nodes (all > 0, summing to the cell's)
+REFINED_CELLS = {"line3": (1, [(0, 2), (2, 1)]),
+                 "triangle6": (2, [(0, 3, 5), (3, 1, 4), (5, 4, 2), (3, 4, 5)]),
+                 "tetra10": (3, [(0, 4, 6, 7), (4, 1, 5, 8), (6, 5, 2, 9), (7, 8, 9, 3),
+                                 (6, 8, 4, 5), (6, 8, 5, 9), (6, 8, 9, 7), (6, 8, 7, 4)])}
+# the dimension of the cells meshio names (its CellBlock.dim; here for blocks that lack it)
+CELL_DIMENSIONS = {"vertex": 0, **SIMPLEX_CELLS, **{k: v[0] for k, v in SPLIT_CELLS.items()},
+                   **{k: v[0] for k, v in REFINED_CELLS.items()}}
 
 
 def read_meshio(path: "str | os.PathLike[str]") -> Any:
@@ -42,24 +55,62 @@ def _simplex_measures(coords: np.ndarray) -> np.ndarray:
     return np.sqrt(np.clip(np.linalg.det(gram), 0, None)) / float(np.prod(np.arange(1, k + 1)))
 
 
-def nodal_volumes(points: np.ndarray, cells: Sequence[Any], dim: int) -> Optional[np.ndarray]:
+def _cell_dimension(block: Any) -> Optional[int]:
+    dim = getattr(block, "dim", None)
+    return int(dim) if dim is not None else CELL_DIMENSIONS.get(block.type)
+
+
+def nodal_volumes(points: np.ndarray, cells: Sequence[Any], dim: int, source: str = "mesh") -> Optional[np.ndarray]:
     """Lumped nodal volumes (N,): each cell of dimension `dim` gives an equal share of its measure to each of its
-    nodes (quads and hexahedra are split into simplices). None when the mesh has no such cells."""
+    nodes (quads, hexahedra, wedges and pyramids are split into simplices for their measure; quadratic lines,
+    triangles and tetrahedra into the simplices of all their nodes, each sharing its measure among its own). None
+    when the mesh has no cells of dimension `dim`; a :class:`DatasetError` naming `source` when it has cells of
+    that dimension whose measure is not computed here (weights of part of the body would be wrong), or cells of a
+    higher dimension (then `dim` is not the body's)."""
     weights = np.zeros(len(points))
     found = False
+    unknown: dict[str, int] = {}
+    higher: dict[str, int] = {}
     for block in cells:
         kind, conn = block.type, np.asarray(block.data)
+        cell_dim = _cell_dimension(block)
+        if cell_dim is not None and cell_dim > dim and len(conn):
+            higher[kind] = higher.get(kind, 0) + len(conn)
+            continue
+        refined = False
         if SIMPLEX_CELLS.get(kind) == dim:
             pieces = [(conn, tuple(range(conn.shape[1])))]
         elif kind in SPLIT_CELLS and SPLIT_CELLS[kind][0] == dim:
             pieces = [(conn, split) for split in SPLIT_CELLS[kind][1]]
+        elif kind in REFINED_CELLS and REFINED_CELLS[kind][0] == dim:
+            pieces, refined = [(conn, split) for split in REFINED_CELLS[kind][1]], True
         else:
+            if cell_dim == dim and len(conn):  # a cell of the body whose measure is not known here
+                unknown[kind] = unknown.get(kind, 0) + len(conn)
             continue
+        if len(conn) and (conn.min() < 0 or conn.max() >= len(points)):
+            raise DatasetError(f"{source}: its {kind} cells refer to nodes {int(conn.min())}–{int(conn.max())}, but "
+                               f"it has {len(points)} (0–{len(points) - 1}); the mesh file is inconsistent")
         found = True
+        if refined:
+            for c, split in pieces:
+                share = _simplex_measures(points[c[:, list(split)]]) / len(split)
+                np.add.at(weights, c[:, list(split)].reshape(-1), np.repeat(share, len(split)))
+            continue
         share = np.zeros(len(conn))
         for c, split in pieces:
             share += _simplex_measures(points[c[:, list(split)]])
         np.add.at(weights, conn.reshape(-1), np.repeat(share / conn.shape[1], conn.shape[1]))
+    known = sorted(k for k, d in CELL_DIMENSIONS.items() if d == dim)
+    if higher:
+        raise DatasetError(f"{source}: the body is taken as {dim}-D, but the mesh has "
+                           f"{', '.join(f'{n} {t}' for t, n in higher.items())} cells of a higher dimension; give "
+                           f"dim= the dimension of its cells (its nodes' coordinates that vary)")
+    if unknown:
+        raise DatasetError(f"{source}: {', '.join(f'{n} {t}' for t, n in unknown.items())} cells fill part of its "
+                           f"{dim}-D body, and lnf cannot compute their nodal volumes (the quadrature weights); it "
+                           f"computes them for {', '.join(known)} cells: convert the mesh (e.g. to first-order "
+                           f"tetra), or write the trajectories with weights of your own (lnf.trajectories)")
     if not found:
         return None
     return weights
@@ -148,6 +199,6 @@ def read_mesh_series(source: "str | os.PathLike | Sequence[str | os.PathLike]", 
     if components is not None:
         q = q[..., :components]
         v = None if v is None else v[..., :components]
-    weights = nodal_volumes(points, ref_cells, points.shape[1])
+    weights = nodal_volumes(points, ref_cells, points.shape[1], name)
     return Trajectories(points=points, times=np.asarray(times, dtype=np.float64), fields=q[None],
                         velocities=None if v is None else v[None], weights=weights)

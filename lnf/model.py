@@ -11,11 +11,14 @@ The Python API of lnf (no Lightning or Hydra needed)::
 """
 from __future__ import annotations
 
+import difflib
 import importlib
 import inspect
 import logging
 import math
+import pkgutil
 from pathlib import Path
+from collections.abc import Iterable
 from typing import Any, Optional
 
 import torch
@@ -28,26 +31,54 @@ from lnf.reduction import (best_start, project_velocity, projection_loss, pullba
                            reduce, start_grid)
 from lnf.scenes.base import Scene
 from lnf.siren import ModulatedSiren
+from lnf.trust import UnsafeCheckpointError, check_spec_targets, read_weights_only
 
 log = logging.getLogger("lnf.model")
 
 
-def target_class(target: Any) -> Any:
-    """The class a spec's ``_target_ = "pkg.mod.Class"`` names; a ValueError saying what to fix otherwise."""
+def target_class(target: Any, key: Optional[str] = None) -> Any:
+    """The class a spec's ``_target_ = "pkg.mod.Class"`` names; a ValueError saying what to fix otherwise.
+
+    `key`: the config key that gave `target` (``scene._target_``), named first in the error. The error says whether
+    the module cannot be found, was found but failed to import, or has no such class, with close matches."""
+    where = f"{key}={target}: " if key else ""
     if not target or "." not in str(target):
-        raise ValueError(f"spec needs a '_target_' of the form 'module.Class', got {target!r}")
+        raise ValueError(f"{where}spec needs a '_target_' of the form 'module.Class', got {target!r}")
     module, _, name = str(target).rpartition(".")
     try:
         imported = importlib.import_module(module)
     except ImportError as err:
-        raise ValueError(f"cannot import module {module!r} of {target!r} named in a spec ({err}): a scene or model "
-                         f"of your own must be importable where it is loaded: run from the folder that holds "
-                         f"{module.split('.')[0]!r}, add that folder to PYTHONPATH, or install it") from err
+        missing = getattr(err, "name", None)
+        if isinstance(err, ModuleNotFoundError) and missing and (module == missing or module.startswith(missing + ".")):
+            hint = _close_modules(missing)
+            raise ValueError(f"{where}cannot import module {module!r} of {target!r} named in a spec (no module named "
+                             f"{missing!r}{hint}): a scene or model of your own must be importable where it is "
+                             f"loaded: run from the folder that holds {module.split('.')[0]!r}, add that folder to "
+                             f"PYTHONPATH, or install it") from err
+        raise ValueError(f"{where}cannot import module {module!r} of {target!r} named in a spec: the module was "
+                         f"found, but importing it failed ({type(err).__name__}: {err}); fix that import") from err
     try:
         return getattr(imported, name)
     except AttributeError as err:
-        raise ValueError(f"module {module!r} ({getattr(imported, '__file__', '?')}) has no {name!r}, which a spec "
-                         f"names as {target!r}: was it renamed?") from err
+        names = [n for n in dir(imported) if not n.startswith("_") and isinstance(getattr(imported, n, None), type)]
+        close = difflib.get_close_matches(name, names, n=3, cutoff=0.6)
+        hint = f" Did you mean {' or '.join(repr(f'{module}.{c}') for c in close)}?" if close else ""
+        named = "" if key else f", which a spec names as {target!r}"
+        raise ValueError(f"{where}module {module!r} ({getattr(imported, '__file__', '?')}) has no {name!r}{named}: "
+                         f"was it renamed?{hint}") from err
+
+
+def _close_modules(missing: str) -> str:
+    """'; did you mean ...?' with the modules beside `missing` (in its parent package, or top-level) whose names are
+    close to it, or ''."""
+    parent, _, leaf = missing.rpartition(".")
+    try:
+        path = importlib.import_module(parent).__path__ if parent else None
+        names = [m.name for m in pkgutil.iter_modules(path)]
+    except Exception:  # noqa: BLE001 - a hint only
+        return ""
+    close = difflib.get_close_matches(leaf, names, n=3, cutoff=0.75)
+    return f"; did you mean {' or '.join(repr(f'{parent}.{c}' if parent else c) for c in close)}?" if close else ""
 
 
 def build(spec: dict[str, Any]) -> Any:
@@ -83,23 +114,32 @@ def dropped_settings(spec: dict[str, Any]) -> list[str]:
     return unknown
 
 
-def load(path: "str | Path", map_location: "str | torch.device" = "cpu") -> ReducedModel:
+def load(path: "str | Path", map_location: "str | torch.device" = "cpu",
+         trust: "Iterable[str] | str | None" = None) -> ReducedModel:
     """Rebuild a trained model from a Lightning checkpoint in one call, without Hydra or Lightning.
 
     The checkpoint's ``hyper_parameters`` hold the scene, model and quadrature specs; the returned model
     is in eval mode and carries ``model.checkpoint = {"path", "data", "epoch", "global_step"}``.
+
+    Opening a checkpoint runs no code it carries: it is read with ``weights_only=True`` and every ``_target_`` of
+    its specs must be one of lnf's own classes or a class of a module named in `trust` (or ``$LNF_TRUST``), e.g.
+    ``trust=["mypkg"]`` for a scene of your own (:mod:`lnf.trust`); anything else is refused before import.
     """
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"checkpoint not found: {path}")
     try:
-        ckpt = torch.load(path, map_location=map_location, weights_only=False)
-    except Exception as err:  # noqa: BLE001 - any unpickling failure means "not a checkpoint"
+        ckpt = read_weights_only(path, map_location=map_location)
+    except UnsafeCheckpointError:
+        raise
+    except Exception as err:  # noqa: BLE001 - any other failure to read means "not a checkpoint"
         raise ValueError(f"{path} is not a readable torch checkpoint: {err}") from err
     hp = ckpt.get("hyper_parameters") if isinstance(ckpt, dict) else None
-    if not hp or not all(k in hp for k in ("scene", "model", "quadrature")) or "state_dict" not in ckpt:
+    if not isinstance(hp, dict) or not all(isinstance(hp.get(k), dict) for k in ("scene", "model", "quadrature")) \
+            or "state_dict" not in ckpt:
         raise ValueError(f"{path} is not an lnf checkpoint: expected 'hyper_parameters' with scene/model/quadrature "
                          "and a 'state_dict' (as written by python -m lnf.train)")
+    check_spec_targets({k: hp[k] for k in ("scene", "model", "quadrature")}, str(path), trust)
     model = build_model(hp["scene"], hp["model"], hp["quadrature"])
     state = {k[len("model."):]: v for k, v in ckpt["state_dict"].items() if k.startswith("model.")}
     model.load_state_dict(state)
@@ -209,9 +249,10 @@ class LagrangianNeuralField(ReducedModel):
         """ρ̃(q): observed field values (B, N, A) at points (N or B, N, dim_B) → codes (B, d).
 
         `field`: the φ the K steps iterate on, if not the model's own (e.g. a
-        :class:`lnf.decoding_table.TabulatedField` of it on these points)."""
-        values = as_field(values)
-        points = points.to(values)
+        :class:`lnf.decoding_table.TabulatedField` of it on these points). Values and points of another dtype
+        (float64) are converted to the model's; the codes are in the model's dtype (float32 once trained)."""
+        values = as_field(self.as_model(values))
+        points = self.as_model(points)
         self._check_observation(points, values, "values")
         density = self._density(points)
         return self._reduce(points, values, density, steps or self.reduction_steps, field)
@@ -294,8 +335,8 @@ class LagrangianNeuralField(ReducedModel):
         ``loss = ℓ^r + ℓ^p`` (+ λ_v ℓ^v when ``velocity_weight`` > 0 and `velocities` (B, N, A) are given),
         with the optional tangent reconstruction loss ℓ^v = (1/|X|) Σ_j ω0 ‖J q̃̇ − q̇_j‖², q̃̇ the
         ω0-projection of the observed velocity onto the tangent space span J (the lifted reduction
-        dρ = (dφ)^{†,ω0} of the paper's eq. 14). ℓ^v is the part of the observed velocity that the
-        embedding's tangent space misses; ℓ^r and ℓ^p do not constrain it.
+        dρ = (dφ)† of the paper's eq. 14, † the ω0-weighted pseudo-inverse). ℓ^v is the part of the observed
+        velocity that the embedding's tangent space misses; ℓ^r and ℓ^p do not constrain it.
 
         With ``energy_weight`` > 0 and the snapshots' full-order potential energies `potential` (B,), also
         `energy_factor` · λ_E ℓ^E (the factor is a training schedule's), ℓ^E the Huber loss (δ = 0.1) of the

@@ -507,8 +507,25 @@ def _draw_fields(
     return axes
 
 
+#: A Delaunay triangle whose longest edge exceeds this many times the median edge of the triangulation is masked (not
+#: drawn): it bridges a cut-out or notch of the body (an L-shape) that the convex hull would fill. Interior triangles
+#: of uniformly random points stay below ~3.2 times the median edge.
+_LONG_EDGE = 4.0
+
+
+def _body_mask(xy: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """(M,) True for the triangles that are not inside the body: those with an edge longer than :data:`_LONG_EDGE`
+    times the median edge, which span a gap in the points (a concave corner, a hole) rather than the body."""
+    corners = xy[triangles]  # (M, 3, 2)
+    edges = np.linalg.norm(corners - np.roll(corners, 1, axis=1), axis=-1)  # (M, 3)
+    longest = edges.max(axis=1)
+    mask = longest > _LONG_EDGE * float(np.median(edges))
+    return np.zeros_like(mask) if mask.all() else mask
+
+
 def _triangulate(xy: np.ndarray, what: str):
-    """Delaunay triangulation of (N, 2) points, or a ValueError saying why there is none."""
+    """Delaunay triangulation of (N, 2) points, with the triangles that bridge gaps of the body masked (see
+    :func:`_body_mask`), or a ValueError saying why there is none."""
     from matplotlib.tri import Triangulation
 
     if xy.shape[0] < 3:
@@ -520,6 +537,9 @@ def _triangulate(xy: np.ndarray, what: str):
                          f"(all on one line, or too few distinct points): {exc}") from exc
     if tri.triangles.shape[0] == 0:
         raise ValueError(f"{what}: the {xy.shape[0]} points cannot be triangulated (all on one line)")
+    mask = _body_mask(xy, tri.triangles)
+    if mask.any():
+        tri.set_mask(mask)
     return tri
 
 
@@ -536,8 +556,9 @@ def _draw_fields_scattered(
 ):
     """As :func:`_draw_fields` for fields on scattered points ``xy`` (N, 2): the same 3 × S panels (predicted,
     true, |pred − true|) drawn with ``tripcolor`` on the points' Delaunay triangulation, one colour per
-    triangle (the mean of its vertices). A triangle touching a non-finite vertex is masked: drawn grey, and
-    the panel notes the share of non-finite points. ``box`` (2, 2): the axis limits."""
+    triangle (the mean of its vertices). Triangles that bridge a gap of the points (the cut-out of an L-shape,
+    a hole: an edge over 4 times the median edge) are not drawn. A triangle touching a non-finite vertex is
+    masked: drawn grey, and the panel notes the share of non-finite points. ``box`` (2, 2): the axis limits."""
     import matplotlib as mpl
 
     tri = _triangulate(xy, what)
@@ -812,7 +833,8 @@ def figure3(
       true_fields: (T, N) on those points; bounds: [[lo, hi], ...] of the dim_B axes. A 1-D body is drawn as
       above with the points sorted by x, each one's cell reaching halfway to its neighbours (non-uniform
       spacing shown as it is); a 2-D body as the same panels drawn on the points' Delaunay triangulation
-      (triangles touching a non-finite value grey), the box as axis limits; a 3-D body as the 2-D drawing of
+      (triangles touching a non-finite value grey; triangles with an edge over 4 times the median edge, which
+      bridge a cut-out or hole of the body, left out), the box as axis limits; a 3-D body as the 2-D drawing of
       the points in a slab around the middle of the third axis (1/8 of its range thick, widened to the
       nearest ⌈N/8⌉ points if it holds fewer; at least 3 points needed).
 

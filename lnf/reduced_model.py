@@ -5,11 +5,16 @@ Our model (:class:`lnf.model.LagrangianNeuralField`) and the POD-Galerkin baseli
 (K learned gradient steps or least squares); both pull the scene's Lagrangian back through the same
 :class:`ReducedDynamics` and roll out with the same integrators. Shapes: codes q̃ (B, d); points
 (N, dim_B) or (B, N, dim_B); fields (B, N, A).
+
+Dtypes: tensors given to ``reduce``, ``project_velocity``, ``decode``, ``rollout`` and ``energy`` may have any
+floating dtype (NumPy's float64 included) and device; they are converted to the model's own (float32 for a model
+trained by ``lnf.train``; see :meth:`ReducedModel.as_model`), and what comes back is in the model's dtype.
 """
 from __future__ import annotations
 
 import copy
 import inspect
+import warnings
 from typing import Any, Callable, Optional
 
 import torch
@@ -20,6 +25,10 @@ from lnf.integrators import Integrator, Trajectory, get_integrator
 from lnf.quadrature import GaussLegendre, Quadrature, QuadratureRule
 from lnf.reduction import project_velocity
 from lnf.scenes.base import Scene
+
+
+class OutsideBodyWarning(UserWarning):
+    """:meth:`ReducedModel.decode` was given points outside the scene's bounds, where φ extrapolates."""
 
 
 def as_field(values: Tensor) -> Tensor:
@@ -55,17 +64,55 @@ class ReducedModel(nn.Module):
             return t
         return torch.zeros(())
 
+    def as_model(self, x: Tensor) -> Tensor:
+        """`x` in the model's floating dtype and on its device (:meth:`reference_tensor`): codes, fields and points
+        of another dtype (float64 from NumPy) are converted rather than refused. A model without parameters or
+        buffers leaves `x` as it is."""
+        x = torch.as_tensor(x)
+        for t in (*self.parameters(), *self.buffers()):
+            if t.is_floating_point():
+                return x.to(device=t.device, dtype=t.dtype)
+            break
+        return x
+
     def _density(self, points: Tensor) -> Tensor:
         return self.scene.density(points)
 
     # ------------------------------------------------------------------ embedding and reduction
-    def decode(self, codes: Tensor, points: Tensor, chunk: int = 65536) -> Tensor:
-        """φ(q̃, X): codes (B, d), points (N, dim_B) or (B, N, dim_B) → (B, N, A). Chunked over points."""
-        points = points.to(codes)
+    def decode(self, codes: Tensor, points: Tensor, chunk: int = 65536, outside: str = "warn") -> Tensor:
+        """φ(q̃, X): codes (B, d), points (N, dim_B) or (B, N, dim_B) → (B, N, A) in the model's dtype (inputs of
+        another dtype are converted to it). Chunked over points.
+
+        φ is fitted on the body only; outside the scene's ``bounds`` it extrapolates. `outside`: what points outside
+        the bounds (beyond a relative 1e-5 of the box) do: ``"warn"`` (one :class:`OutsideBodyWarning` per call,
+        naming how many and the bounds), ``"error"`` (a ValueError saying the same) or ``"ignore"``. Only the box
+        is known: inside it, points in a cut-out of a body that does not fill its box are not detected."""
+        codes = self.as_model(codes)
+        points = self.as_model(points)
+        self._check_inside(points, outside)
         if points.shape[-2] <= chunk:
             return self.field(codes, points)
         parts = [self.field(codes, points[..., i:i + chunk, :]) for i in range(0, points.shape[-2], chunk)]
         return torch.cat(parts, dim=-2)
+
+    def _check_inside(self, points: Tensor, outside: str) -> None:
+        """Warn about (or refuse) points outside the scene's bounds: what :meth:`decode` does with `outside`."""
+        if outside not in ("warn", "error", "ignore"):
+            raise ValueError(f"decode(outside=...) must be 'warn', 'error' or 'ignore', got {outside!r}")
+        if outside == "ignore" or points.shape[-1] != self.scene.body_dim:
+            return
+        box = torch.as_tensor(self.scene.bounds, dtype=points.dtype, device=points.device)  # (dim_B, 2)
+        tol = 1e-5 * (box[:, 1] - box[:, 0])
+        out = ((points < box[:, 0] - tol) | (points > box[:, 1] + tol)).any(-1)
+        n_out = int(out.sum())
+        if not n_out:
+            return
+        message = (f"decode: {n_out} of {out.numel()} points lie outside the body's bounds {self.scene.bounds} "
+                   f"(scene {self.scene.name!r}), where φ, fitted on the body only, extrapolates; pass points inside "
+                   f"the bounds, or outside='ignore' to accept extrapolation ('error' to refuse it)")
+        if outside == "error":
+            raise ValueError(message)
+        warnings.warn(message, OutsideBodyWarning, stacklevel=3)
 
     def reduce(self, points: Tensor, values: Tensor, steps: Optional[int] = None) -> Tensor:
         """ρ(q): observed field values (B, N, A) at points → codes (B, d)."""
@@ -77,12 +124,14 @@ class ReducedModel(nn.Module):
 
     def project_velocity(self, codes: Tensor, points: Tensor, velocities: Tensor,
                          weights: Optional[Tensor] = None) -> Tensor:
-        """q̃̇ = (dφ)^{†,ω0} q̇: velocity field (B, N, A) at points → (B, d).
+        """q̃̇ = (dφ)† q̇ (†: the ω0-weighted pseudo-inverse): velocity field (B, N, A) at points → (B, d).
 
-        `weights` are quadrature weights of the points (N,); uniform (|B|/N) if omitted.
+        `weights` are quadrature weights of the points (N,); uniform (|B|/N) if omitted. Returned in the model's
+        dtype (inputs of another dtype are converted to it).
         """
-        velocities = as_field(velocities)
-        points = points.to(velocities)
+        velocities = as_field(self.as_model(velocities))
+        codes = self.as_model(codes)
+        points = self.as_model(points)
         self._check_observation(points, velocities, "velocities")
         if weights is None:
             weights = points.new_full(points.shape[:-1], 1.0 / points.shape[-2])
@@ -126,7 +175,9 @@ class ReducedModel(nn.Module):
         `controls` (B, c): per-trajectory load parameters of a forced scene (:meth:`Scene.controls`).
         `dynamics`: what :meth:`dynamics` (`quadrature`) returned, if the caller already built it.
         `progress(k)`: told of every k steps done (e.g. a progress bar's advance).
+        q̃0, q̃̇0 and `controls` of another dtype (float64) are converted to the model's; the trajectory is in it.
         """
+        q0, v0 = self.as_model(q0), self.as_model(v0)
         dynamics = self.dynamics(quadrature) if dynamics is None else dynamics
         if controls is not None:
             if not hasattr(dynamics, "controls"):
@@ -144,7 +195,9 @@ class ReducedModel(nn.Module):
 
     def energy(self, q: Tensor, v: Tensor, quadrature: "Quadrature | QuadratureRule | None" = None
                ) -> tuple[Tensor, Tensor]:
-        """(T̃, Ṽ) of reduced states q̃, q̃̇ (..., d) → each (...): the scene's energy pulled back through φ."""
+        """(T̃, Ṽ) of reduced states q̃, q̃̇ (..., d) → each (...): the scene's energy pulled back through φ (inputs
+        of another dtype are converted to the model's)."""
+        q, v = self.as_model(q), self.as_model(v)
         with torch.no_grad():
             return self.lagrangian_dynamics(quadrature).energies(q, v)
 

@@ -82,7 +82,7 @@ def pullback_mass_matrix(J: Tensor, weights: Tensor) -> Tensor:
 
 
 def project_velocity(J: Tensor, weights: Tensor, velocities: Tensor) -> Tensor:
-    """q̃̇ = argmin_v ‖J v − q̇‖²_{ω0} = M̃⁻¹ Σ_j w_j ω0_j J_jᵀ q̇_j (B, d); weights include ω0."""
+    """q̃̇ = argmin_v ‖J v − q̇‖²_ω0 = M̃⁻¹ Σ_j w_j ω0_j J_jᵀ q̇_j (B, d); weights include ω0."""
     M = pullback_mass_matrix(J, weights)
     rhs = torch.einsum("bn,bnai,bna->bi", weights.expand(J.shape[:2]), J, velocities)
     return solve_mass(M, rhs)

@@ -15,6 +15,7 @@ from typing import Any, Optional
 
 import hydra
 import lightning.pytorch as pl
+import numpy as np
 import torch
 from lightning.pytorch.callbacks import EarlyStopping, ProgressBar, Timer
 from omegaconf import DictConfig, OmegaConf
@@ -22,11 +23,15 @@ from omegaconf import DictConfig, OmegaConf
 from lnf.baselines.latent_mlp import latent_trajectories
 from lnf.allocator import keep_freed_memory
 from lnf.config_keys import check_known_keys
-from lnf.model import dropped_settings
+from lnf.model import dropped_settings, target_class
+from lnf.run_lock import run_folder_lock
+from lnf.scenes.base import Scene
+from lnf.scenes.check import SceneCheckError, check_scene
 from lnf.training.callbacks import RolloutEvaluationCallback, write_json_atomic
 from lnf.training.checkpoints import AtomicCheckpointIO, resume_checkpoint
 from lnf.training.console import MetricsProgressBar, quiet_console
 from lnf.training.datamodule import SnapshotDataModule
+from lnf.training.loggers import finish_wandb_run
 from lnf.training.module import LNFModule
 from lnf.utils import check_config, print_summary, resolved_config, run_metadata
 
@@ -74,6 +79,57 @@ def check_resumed_scene(ckpt: dict[str, Any], path: Path, scene_spec: dict[str, 
         raise ValueError(f"{path} was trained on another scene ({diffs}); resume it with its own scene, start "
                          f"afresh in a new output dir, or set resume_other_scene=true to fine-tune it on this one")
     log.warning("resuming %s, trained on another scene (%s), as resume_other_scene=true asks", path, diffs)
+
+
+def build_scene(spec: dict[str, Any]) -> Scene:
+    """The configured scene. Its class (``scene._target_``) is resolved first, so that an error names the key, the
+    value and what is wrong (no such module, a module that fails to import, no such class in it: close matches);
+    the other ``scene.*`` keys are its constructor's arguments."""
+    spec = dict(spec)
+    target = spec.pop("_target_", None)
+    cls = target_class(target, key="scene._target_")
+    if not (isinstance(cls, type) and issubclass(cls, Scene)):
+        raise ValueError(f"scene._target_={target}: {target} is not a subclass of lnf.scenes.Scene (got "
+                         f"{cls!r}); a scene of your own subclasses it (docs/own_system.md)")
+    try:
+        return cls(**spec)
+    except TypeError as err:
+        raise TypeError(f"scene._target_={target}: {cls.__name__}(**scene) failed ({err}); the scene.* keys other "
+                        f"than _target_ ({', '.join(sorted(spec)) or 'none'}) are its constructor's arguments") from err
+
+
+def scene_needs(model_spec: dict[str, Any], datamodule: SnapshotDataModule) -> dict[str, str]:
+    """The scene's optional parts that this run needs ({capability: what needs it}, for ``check_scene(needs=)``):
+    a simulator, fields and reference energies for a dataset that lnf generates, ∇_X q for the gradient loss,
+    the reference energies for the energy loss and the clamp factor for ``model.clamp``."""
+    needs: dict[str, str] = {}
+    if not datamodule.from_arrays:
+        why = (f"the dataset {datamodule.path}, which lnf generates from the scene (or bring your own trajectories: "
+               f"lnf.trajectories.write_dataset and data.path),")
+        needs.update({cap: why for cap in ("simulator", "fields", "true_energies")})
+    if float(model_spec.get("energy_weight") or 0) > 0 and not datamodule.from_arrays:
+        needs["true_energies"] = f"model.energy_weight={model_spec['energy_weight']} (the energy loss)"
+    if float(model_spec.get("gradient_weight") or 0) > 0:
+        needs["field_gradients"] = f"model.gradient_weight={model_spec['gradient_weight']} (the gradient loss)"
+    if model_spec.get("clamp"):
+        needs["clamp"] = "model.clamp=true"
+    return needs
+
+
+def check_run_scene(scene: Scene, needs: dict[str, str]) -> None:
+    """Run :func:`lnf.scenes.check.check_scene` with the run's `needs`: a scene that lacks a part the run needs
+    (or whose parts are inconsistent) is refused before any work. An expensive reference (an FEM model) is not
+    simulated here; its declarations are still checked. The global random state is left as it was."""
+    state = np.random.get_state()
+    with torch.random.fork_rng(devices=[]):
+        report = check_scene(scene, raise_on_problem=False, needs=needs,
+                             simulate=not getattr(scene, "expensive_reference", False))
+    np.random.set_state(state)
+    if not report.ok:
+        target = f"{type(scene).__module__}.{type(scene).__qualname__}"
+        raise SceneCheckError(f"scene._target_={target}: the scene fails check_scene (run before any data are "
+                              f"generated or any training), fix what it lists:\n{report}")
+    log.info("%s", str(report).splitlines()[0])
 
 
 def check_settings(cfg: DictConfig, module: LNFModule) -> None:
@@ -139,7 +195,16 @@ def run_record(cfg: DictConfig, path: Path) -> dict[str, Any]:
 
 
 def train(cfg: DictConfig) -> dict[str, float]:
-    """Generate data if needed, train, test; returns the test metrics (also written to metrics.json)."""
+    """Generate data if needed, train, test; returns the test metrics (also written to metrics.json). A second run
+    in the same output folder while this one runs is refused (:mod:`lnf.run_lock`)."""
+    with run_folder_lock(Path(cfg.paths.output_dir), "python -m lnf.train"):
+        try:
+            return _train(cfg)
+        finally:
+            finish_wandb_run()  # each job of a multirun logs into a wandb run of its own
+
+
+def _train(cfg: DictConfig) -> dict[str, float]:
     quiet_console()
     check_known_keys(cfg, "train", "lnf.train", allowed_extra=("experiment",))
     check_config(cfg)
@@ -151,13 +216,15 @@ def train(cfg: DictConfig) -> dict[str, float]:
     start = time.perf_counter()
 
     scene_spec = _container(cfg.scene)
-    datamodule: SnapshotDataModule = hydra.utils.instantiate(cfg.data, scene=scene_spec, _convert_="all")
+    scene = build_scene(scene_spec)  # a wrong scene._target_ is named with what is wrong, not Hydra's generic error
+    datamodule: SnapshotDataModule = hydra.utils.instantiate(cfg.data, scene=scene, _convert_="all")
     model_spec = _container(cfg.model)
     dynamics_spec = _container(cfg.get("dynamics"))
     if dynamics_spec and not str(dynamics_spec.get("_target_", "")).endswith("ReducedDynamics"):
         model_spec["dynamics"] = dynamics_spec
     dropped = dropped_settings(model_spec)  # each named in a warning
     model_spec = {k: v for k, v in model_spec.items() if k not in dropped}
+    check_run_scene(scene, scene_needs(model_spec, datamodule))  # before any data are generated or steps taken
     module = LNFModule(scene=scene_spec, model=model_spec, quadrature=_container(cfg.quadrature),
                        optimizer=_container(cfg.optimizer), data=datamodule.describe())
     check_settings(cfg, module)
@@ -183,7 +250,8 @@ def train(cfg: DictConfig) -> dict[str, float]:
     fit_info: dict[str, float] = {}
     fit_metrics: dict[str, float] = {}
     if model.trainable:
-        trainer.fit(module, datamodule=datamodule, ckpt_path=str(ckpt_file) if ckpt_file else None)
+        trainer.fit(module, datamodule=datamodule, ckpt_path=str(ckpt_file) if ckpt_file else None,
+                    weights_only=True)  # a resumed checkpoint is read as tensors and plain data, never unpickled
         # the last epoch's training and validation values (losses, validation rollouts); a run resumed after
         # its last epoch trains no more and reports those its checkpoint recorded
         fit_metrics = {**module.restored_fit_metrics, **module.fit_metrics()}

@@ -32,7 +32,8 @@ from typing import Any, Optional, Sequence
 import numpy as np
 
 from lnf.dataset import (CHECKSUM_ALGORITHM, CHECKSUM_ATTR, FORMAT_VERSION, SOURCE_ARRAYS, DatasetError,
-                         _little_endian, _size, _write_array, atomic_h5, scene_record, write_root_attributes)
+                         _little_endian, _size, _write_array, atomic_h5, check_points, scene_record,
+                         write_root_attributes)
 
 log = logging.getLogger("lnf.trajectories")
 
@@ -40,7 +41,12 @@ TIME_TOLERANCE = 1e-6  # relative spread of the time steps that still counts as 
 
 
 def _array(name: str, value: Any, ndim: Sequence[int], dtype: Any = np.float64) -> np.ndarray:
-    """`value` as a finite array of one of the dimensions `ndim`, or a DatasetError naming `name`."""
+    """`value` as a finite real array of one of the dimensions `ndim`, or a DatasetError naming `name`."""
+    kind = getattr(getattr(value, "dtype", None), "is_complex", None)  # a torch tensor's dtype says so itself
+    if kind is True or (kind is None and np.iscomplexobj(value)):
+        raise DatasetError(f"{name}: got a complex array (dtype {value.dtype if hasattr(value, 'dtype') else 'complex'}"
+                           f"); lnf expects real floating-point values (converting would drop the imaginary part): "
+                           f"pass its real part, its magnitude, or the real and imaginary parts as two components")
     try:
         arr = np.asarray(value, dtype=dtype)
     except (TypeError, ValueError) as exc:
@@ -235,6 +241,43 @@ def _check_scene(scene: Any, data: Trajectories) -> None:
                            f"give the scene bounds that hold the whole body")
 
 
+def _trajectory_keys(part: Trajectories) -> list[bytes]:
+    """One digest per trajectory of what identifies it: its fields, velocities, states and controls (bit for bit)."""
+    keys = []
+    for i in range(len(part)):
+        h = hashlib.blake2b(digest_size=20)
+        for arr in (part.fields, part.velocities, part.states, part.controls):
+            if arr is not None:
+                h.update(_little_endian(np.asarray(arr[i])))
+        keys.append(h.digest())
+    return keys
+
+
+def _check_disjoint(path: Path, splits: dict[str, Trajectories]) -> None:
+    """No trajectory (identical fields, velocities, states and controls) in train and also in val or test: that
+    leaks the training data into validation (model selection) or the test errors → DatasetError naming both splits
+    and a pair. One shared by val and test only → a warning (the test errors stay honest, the selection does not)."""
+    keys = {name: _trajectory_keys(part) for name, part in splits.items()}
+    for a, b in (("train", "test"), ("train", "val"), ("val", "test")):
+        first = {k: i for i, k in reversed(list(enumerate(keys[a])))}
+        shared = [(first[k], j) for j, k in enumerate(keys[b]) if k in first]
+        if not shared:
+            continue
+        i, j = shared[0]
+        whole = (f"the {b} split is identical to the {a} split" if len(shared) == len(keys[b]) == len(keys[a]) and
+                 all(x == y for x, y in shared) else
+                 f"{len(shared)} of the {len(keys[b])} {b} trajectories {'is' if len(shared) == 1 else 'are'} "
+                 f"also in the {a} split")
+        detail = (f"{path}: {whole} (e.g. {b} trajectory {j} is {a} trajectory {i}: the same fields, velocities, "
+                  f"states and controls)")
+        if a == "train":
+            raise DatasetError(f"{detail}; a trajectory in train and also in {b} leaks the training data into the "
+                               f"{b} errors: give {b} other trajectories than train (e.g. runs.select(slice(0, "
+                               f"n_train)) and runs.select(slice(n_train, None)) of distinct runs)")
+        log.warning("%s; the validation loss that selects the model then also measures the test trajectories; give "
+                    "val trajectories of its own for honest test errors", detail)
+
+
 def _masks(n: int, n_points: int, fraction: float, rng: np.random.Generator) -> np.ndarray:
     """(n, N) bool: each trajectory's fixed random subset of round(fraction·N) ≥ 1 observed points."""
     n_obs = int(round(fraction * n_points))
@@ -274,6 +317,11 @@ def write_dataset(path: str | os.PathLike, train: Trajectories, val: Trajectorie
             training snapshot is that subset; seeded by `seed`).
         overwrite: replace an existing file at `path` (default False: an existing file is an error, never lost).
 
+    Refused as well (the data would be silently wrong): complex arrays; distinct points that float32, the model's
+    precision, would merge (shift or scale the coordinates; the points are stored in float64, as given); a point
+    given twice with different values; a trajectory (the same fields, velocities, states and controls) in train and
+    also in val or test, a leak (one shared by val and test only is a warning).
+
     Every failure is a DatasetError naming the argument, its shape or the file.
     """
     path = Path(path)
@@ -292,6 +340,9 @@ def write_dataset(path: str | os.PathLike, train: Trajectories, val: Trajectorie
                            f"{train_times!r}")
     if not 0 < float(observed_fraction) <= 1:
         raise DatasetError(f"observed_fraction must be in (0, 1], got {observed_fraction!r}")
+    check_points(f"{path}: points", train.points, {f"{name} {key}": getattr(part, key) for name, part in splits.items()
+                                                   for key in ("fields", "velocities")})
+    _check_disjoint(path, splits)
     energies = "given" if train.kinetic is not None else "none"
     if scene is not None:
         _check_scene(scene, train)
@@ -315,7 +366,7 @@ def write_dataset(path: str | os.PathLike, train: Trajectories, val: Trajectorie
     with atomic_h5(path, needed) as f:
         write_root_attributes(f, spec, generation, str(scene.name) if scene is not None else "arrays")
         _write_array(f, "times", train.dt * np.arange(T, dtype=np.float64))
-        _write_array(f, "grids/fine", train.points.astype(np.float32))
+        _write_array(f, "grids/fine", train.points.astype(np.float64))  # a mesh's nodes exactly, not rounded
         f["grids/coarse"] = f["grids/fine"]  # observations are taken at the same points: a link, not a copy
         if train.weights is not None:
             _write_array(f, "grids/weights", train.weights)

@@ -1,6 +1,7 @@
 """Small helpers shared by the entry points: config checks, run metadata, the summary table."""
 from __future__ import annotations
 
+import math
 import platform
 import subprocess
 import sys
@@ -18,8 +19,121 @@ SUMMARY_KEYS = [
 ]
 
 
+# The numeric settings whose range lnf knows, by dotted key: (kind, low, high, what it is). kind "int": an integer
+# (an integral float such as 4.0 passes) in [low, high]; ">": a finite number > low; "≥": a finite number ≥ low
+# (≤ high where high is given). A key absent from the config, or null, is not checked here (null means a default
+# where the key allows it). Every other number in the config must still be finite (:func:`check_numbers`).
+NUMBER_RULES: dict[str, tuple[str, float, Optional[float], str]] = {
+    "seed": ("int", 0, 2 ** 32 - 1, "the random seed"),
+    "threads": ("int", 1, None, "torch CPU threads"),
+    "model.latent_dim": ("int", 1, None, "the latent dimension d"),
+    "model.width": ("int", 1, None, "neurons per layer of φ"),
+    "model.depth": ("int", 1, None, "hidden layers of φ"),
+    "model.hyper_width": ("int", 1, None, "neurons per layer of the hypernetwork"),
+    "model.hyper_depth": ("int", 0, None, "layers of the hypernetwork"),
+    "model.hyper_init_scale": ("≥", 0, None, "the hypernetwork's initial scale"),
+    "model.w0": (">", 0, None, "the SIREN frequency"),
+    "model.reduction_steps": ("int", 1, None, "K, the steps of ρ̃"),
+    "model.reduction_starts": ("int", 1, None, "start codes per axis of ρ̃"),
+    "model.start_radius": (">", 0, None, "the half-width of ρ̃'s start codes"),
+    "model.step_size": (">", 0, None, "α0, the step of ρ̃"),
+    "model.velocity_weight": ("≥", 0, None, "λ_v of the velocity loss"),
+    "model.energy_weight": ("≥", 0, None, "λ_E of the energy loss"),
+    "model.gradient_weight": ("≥", 0, None, "λ_G of the gradient loss"),
+    "model.resolution": ("int", 1, None, "grid points per axis of the full-order model"),
+    "model.degree": ("int", 0, None, "the Legendre degree per axis"),
+    "model.ridge": ("≥", 0, None, "the Tikhonov weight"),
+    "model.max_condition": (">", 0, None, "the largest condition number of the fits"),
+    "optimizer.lr": (">", 0, None, "the learning rate of the field; 0 trains nothing"),
+    "optimizer.step_size_lr": ("≥", 0, None, "the learning rate of log α"),
+    "optimizer.weight_decay": ("≥", 0, None, "Adam's weight decay"),
+    "optimizer.warmup_steps": ("int", 0, None, "steps of learning-rate warm-up"),
+    "optimizer.min_lr_ratio": ("≥", 0, 1, "the floor of the cosine schedule, a fraction of lr"),
+    "optimizer.energy_warmup_epochs": ("int", 0, None, "epochs without the energy loss"),
+    "integrator.substeps": ("int", 1, None, "integration steps per sample"),
+    "integrator.order": ("int", 2, None, "the order of the integrator"),
+    "integrator.tol": (">", 0, None, "the tolerance of the implicit solve"),
+    "integrator.max_iter": ("int", 1, None, "iterations of the implicit solve"),
+    "integrator.rtol": (">", 0, None, "the relative tolerance of the adaptive step"),
+    "integrator.atol": (">", 0, None, "the absolute tolerance of the adaptive step"),
+    "integrator.max_abs": (">", 0, None, "the largest |q̃| or |q̃̇| that is not a divergence"),
+    "dynamics.tol": (">", 0, None, "the interpolation tolerance of the table"),
+    "dynamics.min_nodes": ("int", 2, None, "Chebyshev nodes per axis"),
+    "dynamics.max_nodes": ("int", 2, None, "Chebyshev nodes per axis"),
+    "dynamics.max_table_points": ("int", 1, None, "points of the table"),
+    "dynamics.margin": ("≥", 0, None, "the widening of the table's box"),
+    "dynamics.lr": (">", 0, None, "the learning rate of the latent dynamics"),
+    "dynamics.width": ("int", 1, None, "neurons per layer of the latent dynamics"),
+    "dynamics.depth": ("int", 1, None, "layers of the latent dynamics"),
+    "dynamics.iterations": ("int", 0, None, "fitting iterations of the latent dynamics"),
+    "dynamics.batch_size": ("int", 1, None, "the batch size of the latent dynamics"),
+    "dynamics.window": ("int", 1, None, "the rollout window of the latent dynamics"),
+}
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def number_problem(key: str, value: Any, rule: Optional[tuple] = None) -> Optional[str]:
+    """What is wrong with the setting `key` = `value` under `rule` (see :data:`NUMBER_RULES`; None: it must only be
+    finite if it is a number), or None if nothing is."""
+    if rule is None:
+        if _is_number(value) and not math.isfinite(value):
+            return f"{key} must be a finite number, got {value!r}"
+        return None
+    kind, low, high, what = rule
+    low_s, high_s = (str(int(x)) if x is not None and float(x).is_integer() else f"{x}" for x in (low, high))
+    if kind == "int":
+        ok = _is_number(value) and math.isfinite(value) and value == int(value) and low <= value \
+            and (high is None or value <= high)
+        expected = f"an integer ≥ {low_s}" + (f" and ≤ {high_s}" if high is not None else "")
+    else:
+        ok = _is_number(value) and math.isfinite(value) and (value > low if kind == ">" else value >= low) \
+            and (high is None or value <= high)
+        expected = f"a finite number {kind} {low_s}" + (f" and ≤ {high_s}" if high is not None else "")
+    return None if ok else f"{key} must be {expected} ({what}), got {value!r}"
+
+
+def check_numbers(cfg: Any, rules: Optional[dict[str, tuple]] = None, prefix: str = "",
+                  skip: tuple[str, ...] = ("hydra",)) -> None:
+    """Refuse NaN, ±inf and out-of-range numbers anywhere in a config (a DictConfig or plain mapping), before any work.
+
+    Every number, in nested mappings and lists too, must be finite; a key of `rules` (default
+    :data:`NUMBER_RULES`; dotted, relative to the config's root) must also lie in its range. Raises one ValueError
+    naming every bad key, its value and what was expected. Null values, strings and missing values pass here.
+    """
+    rules = NUMBER_RULES if rules is None else rules
+    if OmegaConf.is_config(cfg):
+        cfg = OmegaConf.to_container(cfg, resolve=False)
+    problems: list[str] = []
+
+    def visit(key: str, value: Any) -> None:
+        if isinstance(value, dict):
+            for k, v in value.items():
+                if not (not key and k in skip):
+                    visit(f"{key}.{k}" if key else str(k), v)
+        elif isinstance(value, (list, tuple)):
+            for i, v in enumerate(value):
+                visit(f"{key}[{i}]", v)
+        elif value is not None and not (isinstance(value, str) and (value == "???" or value.startswith("${"))):
+            problem = number_problem(key, value, rules.get(key))
+            if problem:
+                problems.append(problem)
+
+    visit(prefix.rstrip("."), cfg)
+    if problems:
+        raise ValueError("; ".join(problems) + " (settings are checked before any work starts)")
+
+
 def check_config(cfg: DictConfig) -> None:
-    """Clear errors for settings that would otherwise fail deep inside torch."""
+    """Clear errors for settings that would otherwise fail deep inside torch: missing values, and NaN, inf or
+    out-of-range numbers (:func:`check_numbers`), each naming its key."""
+    missing = {f"{k}.{m}" for k, v in cfg.items() if k != "hydra" and OmegaConf.is_config(v)
+               for m in OmegaConf.missing_keys(v)}
+    if missing:
+        raise ValueError(f"missing required config values: {sorted(missing)}")
+    check_numbers(cfg)
     model = cfg.model
     if model.get("latent_dim") is not None and int(model.latent_dim) < 1:
         raise ValueError(f"model.latent_dim must be ≥ 1, got {model.latent_dim}")
@@ -31,10 +145,6 @@ def check_config(cfg: DictConfig) -> None:
         raise ValueError(f"dynamics={dynamics._target_} (learned or tabulated latent dynamics) needs model=lnf "
                          f"(a neural field with codes to learn or tabulate on), got model={model.get('_target_')}; "
                          f"use dynamics=lagrangian with this model")
-    missing = {f"{k}.{m}" for k, v in cfg.items() if k != "hydra" and OmegaConf.is_config(v)
-               for m in OmegaConf.missing_keys(v)}
-    if missing:
-        raise ValueError(f"missing required config values: {sorted(missing)}")
 
 
 def resolved_config(cfg: DictConfig) -> dict[str, Any]:

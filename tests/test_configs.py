@@ -25,9 +25,11 @@ def test_every_option_composes_and_instantiates(group, option, tmp_path):
 
         from lnf.trajectories import Trajectories, write_dataset
 
-        part = Trajectories(points=np.random.default_rng(0).uniform(-1, 1, (20, 2)), times=0.1 * np.arange(3),
-                            fields=np.zeros((1, 3, 20)), weights=np.full(20, 0.2))
-        extra = [f"data.path={write_dataset(tmp_path / 'mine.h5', part, part, part)}"]
+        rng = np.random.default_rng(0)
+        runs = Trajectories(points=rng.uniform(-1, 1, (20, 2)), times=0.1 * np.arange(3),
+                            fields=rng.normal(size=(3, 3, 20)), weights=np.full(20, 0.2))  # 3 distinct runs
+        path = write_dataset(tmp_path / "mine.h5", runs.select(0), runs.select(1), runs.select(2))
+        extra = [f"data.path={path}"]
     cfg = compose_config("train", ["+experiment=pendulum", f"{group}={option}", *extra], tmp_path)
     node = cfg[group]
     plain = OmegaConf.to_container(node, resolve=True)

@@ -44,7 +44,7 @@ def test_a_training_run_prints_no_noise_and_still_warns(tmp_path):
 def test_an_error_still_shows(tmp_path):
     proc = _run(["+experiment=pendulum", "trainer=smoke", "logger=csv", *TINY, "model.latent_dim=0"], tmp_path)
     assert proc.returncode != 0
-    assert "model.latent_dim must be ≥ 1, got 0" in proc.stderr + proc.stdout
+    assert "model.latent_dim must be an integer ≥ 1 (the latent dimension d), got 0" in proc.stderr + proc.stdout
 
 
 def test_only_the_known_noise_is_filtered(caplog):

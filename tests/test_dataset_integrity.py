@@ -117,6 +117,28 @@ def test_missing_checksum_is_corrupt(fresh_file, scene):
         load_split(fresh_file, "test")
 
 
+def test_edited_root_attributes_are_corrupt(fresh_file, scene, caplog):
+    """The settings edited by hand to those of another run (training horizon 5, not 6): every dataset's checksum
+    still holds, the checksum of lnf_generation does not; the file is not reused with data it does not hold."""
+    other = replace(CFG, train_times=5)
+    with h5py.File(fresh_file, "r+") as f:
+        f.attrs["lnf_generation"] = f.attrs["lnf_generation"].replace('"train_times": 6', '"train_times": 5')
+    message = r"pendulum\.h5: root attribute lnf_generation does not match its checksum in lnf_attributes_checksum"
+    with pytest.raises(DatasetError, match=message + r".*data\.on_mismatch=regenerate"):
+        ensure_dataset(scene, other, fresh_file, on_mismatch="error")
+    with pytest.raises(DatasetError, match=message):
+        load_split(fresh_file, "test")
+    with caplog.at_level(logging.WARNING, logger="lnf.dataset"):
+        assert ensure_dataset(scene, other, fresh_file, overwrite_other_settings=False) == fresh_file
+    assert "regenerating" in caplog.text and "lnf_generation does not match its checksum" in caplog.text
+    assert load_split(fresh_file, "test", scene=scene, cfg=other).train_times == 5
+    with h5py.File(fresh_file, "r+") as f:  # a file of an older lnf has no attribute checksums: reused as before
+        del f.attrs["lnf_attributes_checksum"]
+    mtime = fresh_file.stat().st_mtime_ns
+    assert ensure_dataset(scene, other, fresh_file, on_mismatch="error") == fresh_file
+    assert fresh_file.stat().st_mtime_ns == mtime
+
+
 def test_a_version_1_file_is_regenerated(fresh_file, shared_file, scene, caplog):
     with h5py.File(fresh_file, "r+") as f:
         f.attrs["format_version"] = 1

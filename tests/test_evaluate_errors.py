@@ -2,6 +2,7 @@
 results when a figure fails: unknown keys (lnf.config_keys), bad values, divergence metrics and warnings."""
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
@@ -156,6 +157,16 @@ BAD_VALUES = [
     ("grid.kind=hex", r"grid.kind must be 'stored', 'uniform' or 'random', got 'hex'"),
     ("grid.resolution=abc", r"grid.resolution must be an integer ≥ 1.*got 'abc'"),
     ("grid.n_points=0", r"grid.n_points must be an integer ≥ 1.*got 0"),
+    ("max_steps=0", r"max_steps must be an integer ≥ 1 \(the most integration steps.*or null \(no limit\), got 0"),
+    ("max_memory_gb=nan", r"max_memory_gb must be a finite number > 0 \[GB\].*got nan"),
+    ("max_memory_gb=-1", r"max_memory_gb must be a finite number > 0 \[GB\].*got -1"),
+    # every number the validators know, in the integrator, quadrature and dynamics groups too
+    ("integrator.tol=nan", r"integrator\.tol must be a finite number > 0 \(the tolerance of the implicit solve\), got nan"),
+    ("integrator.substeps=nan", r"integrator\.substeps must be an integer ≥ 1.*got nan"),
+    ("integrator.max_iter=0", r"integrator\.max_iter must be an integer ≥ 1.*got 0"),
+    ("quadrature=uniform quadrature.resolution=inf", r"quadrature\.resolution must be a finite number, got inf"),
+    ("dynamics=tabulated dynamics.tol=nan", r"dynamics\.tol must be a finite number > 0.*got nan"),
+    ("initial_states=[[0.5,nan]]", r"initial_states\[0\]\[1\] must be a finite number, got nan"),
 ]
 
 
@@ -168,7 +179,89 @@ def test_bad_values_are_refused_before_anything_is_loaded(ckpt, tmp_path, monkey
 
     monkeypatch.setattr(lnf.evaluate, "load", no_load)
     with pytest.raises(ValueError, match=match):
-        lnf.evaluate.evaluate(eval_cfg(ckpt, [override], tmp_path))
+        lnf.evaluate.evaluate(eval_cfg(ckpt, override.split(), tmp_path))
+
+
+# Work that cannot finish is refused before any data are loaded or simulated: the time budget (max_steps
+# integration steps, integrator.substeps counted) and the memory (max_memory_gb, $LNF_MAX_MEMORY_GB, else what is
+# available). Each used to end in a numpy allocation error after a while, or to run with memory rising.
+OVER_BUDGET = [
+    (["horizon=1e9"], r"horizon=1e\+09 \[s\] at dt=null \(the data’s: 0.05 s\) is 20000000000 frames: with "
+                      r"integrator.substeps=1 the rollout takes 2e\+10 integration steps per trajectory, over "
+                      r"max_steps=1000000 \(the time budget of lnf.evaluate\): lower horizon, raise dt"),
+    (["horizon=1e5"], r"horizon=100000 .* 2e\+06 integration steps per trajectory, over max_steps=1000000"),
+    (["horizon=2e4", "integrator.substeps=100"], r"horizon=20000 .*is 400000 frames: with integrator.substeps=100 "
+                                                 r"the rollout takes 4e\+07 integration steps"),
+    (["long_steps=1e9"], r"long_steps=1e\+09 with integrator.substeps=1 is 1e\+09 integration steps, over "
+                         r"max_steps=1000000.*lower long_steps"),
+    (["long_steps=20000", "integrator=rk4", "integrator.substeps=100"],
+     r"long_steps=20000 with integrator.substeps=100 is 2e\+06 integration steps, over max_steps=1000000"),
+    (["grid.kind=uniform", "grid.resolution=100000", "max_memory_gb=64"],
+     r"the evaluation would hold about 6\d\d\.\d GB \(2 trajectories × 20 frames × 10000000000 points: .*"
+     r"grid.kind=uniform, grid.resolution=100000.*\), over the limit of 64.0 GB \(max_memory_gb=64\): .*fewer points"),
+    (["grid.kind=random", "grid.n_points=1e12", "max_memory_gb=64"],
+     r"the evaluation would hold about \d+\.\d GB .*grid.n_points=1e\+12.*over the limit of 64.0 GB"),
+    (["horizon=1e4", "max_steps=null", "max_memory_gb=0.01"],
+     r"the evaluation would hold about .* MB \(2 trajectories × 200000 frames .*horizon=10000 \[s\].*over the "
+     r"limit of 10.2 MB \(max_memory_gb=0.01\): lower horizon"),
+    (["long_steps=1e8", "max_steps=null", "max_memory_gb=0.1"],
+     r"long_steps=1e\+08 × long_trajectories=2 would hold about 1.5 GB .*over the limit of 102.4 MB"),
+]
+
+
+@pytest.mark.parametrize("overrides,match", OVER_BUDGET, ids=[" ".join(o) for o, _ in OVER_BUDGET])
+def test_work_that_cannot_finish_is_refused_before_any_data_is_loaded(ckpt, tmp_path, monkeypatch, overrides, match):
+    import lnf.evaluate
+
+    def no_data(*args, **kwargs):
+        raise AssertionError("data were loaded or simulated before the budget was checked")
+
+    for name in ("ensure_dataset", "verify_dataset", "load_split", "simulated_ground_truth", "evaluate_rollouts"):
+        monkeypatch.setattr(lnf.evaluate, name, no_data)
+    with pytest.raises(ValueError, match=match):
+        lnf.evaluate.evaluate(eval_cfg(ckpt, overrides, tmp_path))
+
+
+def test_memory_limit_from_the_environment_and_the_machine(ckpt, tmp_path, monkeypatch):
+    import lnf.evaluate
+
+    found, where = lnf.evaluate.available_memory()  # read portably: /proc/meminfo, a cgroup limit, os.sysconf
+    assert found is None or found > 0, where
+    monkeypatch.setenv("LNF_MAX_MEMORY_GB", "0.001")
+    with pytest.raises(ValueError, match=r"over the limit of 1.0 MB \(\$LNF_MAX_MEMORY_GB=0.001\)"):
+        lnf.evaluate.evaluate(eval_cfg(ckpt, ["grid.kind=uniform", "grid.resolution=200"], tmp_path))
+    monkeypatch.setenv("LNF_MAX_MEMORY_GB", "lots")
+    with pytest.raises(ValueError, match=r"\$LNF_MAX_MEMORY_GB='lots' must be a finite number > 0 \[GB\]"):
+        lnf.evaluate.evaluate(eval_cfg(ckpt, [], tmp_path))
+    # max_memory_gb wins over the environment; the substeps are in the cost line
+    with caplog_at(logging.INFO, "lnf.evaluate") as records:
+        lnf.evaluate.evaluate(eval_cfg(ckpt, ["max_memory_gb=8", "max_trajectories=1", "integrator=rk4",
+                                              "integrator.substeps=3", "long_steps=5", "long_trajectories=1"],
+                                       tmp_path))
+    said = " ".join(r.getMessage() for r in records)
+    assert "the rollout takes 57 integration steps per trajectory (19 sample intervals × integrator.substeps=3)" \
+        in said, said
+    assert "1 trajectories × 5 steps (15 integration steps with integrator.substeps=3)" in said, said
+
+
+@contextlib.contextmanager
+def caplog_at(level, name):
+    """The records of logger `name` at `level` and above (a caplog that does not need the fixture)."""
+    records = []
+
+    class Keep(logging.Handler):
+        def emit(self, record):
+            records.append(record)
+
+    logger, handler = logging.getLogger(name), Keep(level)
+    old = logger.level
+    logger.addHandler(handler)
+    logger.setLevel(level)
+    try:
+        yield records
+    finally:
+        logger.removeHandler(handler)
+        logger.setLevel(old)
 
 
 def test_missing_checkpoint_path_is_a_clear_error(tmp_path):
@@ -208,6 +301,59 @@ def test_rollout_divergence_metrics_and_warning(ckpt, caplog):
     assert fine["diverged_count"] == 0.0 and fine["diverged_fraction"] == 0.0
     assert fine["first_divergence_step"] == -1.0 and fine["first_divergence_time"] == -1.0
     assert not [r for r in caplog.records if r.name == "lnf.evaluation" and r.levelno >= logging.WARNING]
+
+
+class NaNPotential:
+    """A scene's discrete potential that is NaN everywhere (a user's potential() with a bug)."""
+
+    def __init__(self, inner):
+        self.inner, self.needs_gradient = inner, inner.needs_gradient
+
+    def __call__(self, q, G=None):
+        return self.inner(q, G) * float("nan")
+
+    def gradient(self, q, G=None):
+        dq, dG = self.inner.gradient(q, G)
+        return dq * float("nan"), dG
+
+
+def test_divergence_at_a_non_finite_initial_state_names_the_cause_not_the_step(ckpt, caplog, monkeypatch):
+    """A scene whose potential is NaN at the initial state used to read "diverged at step 0 … try a smaller dt"."""
+    import torch
+
+    from lnf.evaluation import evaluate_rollouts, long_horizon_energy
+    from lnf.integrators import RolloutDivergedError
+
+    model, states, times, points = _setup(ckpt)
+    potential = model.scene.potential
+    monkeypatch.setattr(model.scene, "potential", lambda quadrature: NaNPotential(potential(quadrature)))
+    for integrator in ("rk4", "implicit_midpoint"):
+        caplog.clear()
+        with caplog.at_level(logging.WARNING, logger="lnf.evaluation"):
+            m = evaluate_rollouts(model, states, times, points, 0.3, integrator=integrator, label="test rollout").metrics
+        assert m["diverged_count"] == 2.0 and m["first_divergence_step"] == 0.0
+        warned = " ".join(r.getMessage() for r in caplog.records if r.name == "lnf.evaluation")
+        assert "the potential energy Ṽ(q̃0) is nan at its initial state: the scene's potential is non-finite" in warned
+        assert "This is not a step-size problem" in warned and "smaller dt," not in warned, warned
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="lnf.evaluation"):
+        long_horizon_energy(model, states[:, 0], points, 0.05, 20, integrator="rk4")
+    warned = " ".join(r.getMessage() for r in caplog.records if r.name == "lnf.evaluation")
+    assert "long-horizon energy check" in warned and "the potential energy Ṽ(q̃0) is nan" in warned, warned
+    for integrator in ("rk4", "implicit_midpoint", "dopri5"):  # the Python API's rollout raises, naming the cause
+        with pytest.raises(RolloutDivergedError, match=r"the acceleration is already non-finite at the initial state"
+                                                       r".*This is not a step-size problem"):
+            model.rollout(torch.zeros(2, 1), torch.zeros(2, 1), dt=0.05, steps=3, integrator=integrator)
+
+
+def test_divergence_on_the_way_still_suggests_a_smaller_step(ckpt, caplog):
+    from lnf.evaluation import evaluate_rollouts
+
+    model, states, times, points = _setup(ckpt)
+    with caplog.at_level(logging.WARNING, logger="lnf.evaluation"):
+        evaluate_rollouts(model, states, times, points, 0.3, integrator=DivergesAtStep(3), label="test rollout")
+    warned = " ".join(r.getMessage() for r in caplog.records if r.name == "lnf.evaluation")
+    assert "Try a smaller dt, integrator.substeps or another integrator" in warned and "step-size" not in warned
 
 
 def test_long_horizon_divergence_metrics_and_warning(ckpt, caplog):

@@ -154,6 +154,20 @@ def test_the_cost_is_said_in_words():
     assert "the checkpoint's rule has 64: the rollout costs about 64× as much" in other.describe()
 
 
+def test_the_cost_counts_integrator_substeps_and_all_it_holds():
+    """The cost line used to ignore integrator.substeps; the memory estimate counts states, codes and energies."""
+    plain = evaluation_cost(16, 400, 16384, 1, keep_fields=2)
+    cost = evaluation_cost(16, 400, 16384, 1, keep_fields=2, substeps=5, state_dim=2, latent_dim=2, body_dim=2,
+                           long_trajectories=4, long_steps=1000)
+    assert cost.rollout_steps == 399 * 5 and plain.rollout_steps == 399 and cost.long_rollout_steps == 5000
+    text = cost.describe()
+    assert "the rollout takes 1995 integration steps per trajectory (399 sample intervals × integrator.substeps=5)" \
+        in text and "the long-horizon check 5000 steps (1000 × 5) of 4 trajectories" in text, text
+    assert cost.memory_bytes > cost.peak_bytes and cost.rollout_memory_bytes > plain.rollout_memory_bytes
+    huge = evaluation_cost(16, 2 * 10 ** 10, 10 ** 12, 1)  # sizes only: nothing is allocated
+    assert huge.memory_bytes > 2 ** 60 and "GB" in huge.describe()
+
+
 def test_the_long_horizon_check_counts_its_steps_on_a_progress_bar(model, case, monkeypatch):
     from lnf import evaluation
 

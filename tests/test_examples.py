@@ -47,9 +47,15 @@ def test_the_vibrating_string_trains_evaluates_draws_and_loads_from_its_own_conf
     assert spec["_target_"] == "vibrating_string.VibratingString"
 
     ckpt = run / "checkpoints" / "last.ckpt"
-    load = [sys.executable, "-c", f"import lnf; m = lnf.load({str(ckpt)!r}); print(type(m.scene).__name__)"]
+    load = [sys.executable, "-c", f"import lnf; m = lnf.load({str(ckpt)!r}, trust=['vibrating_string']); "
+            f"print(type(m.scene).__name__)"]
     ok = subprocess.run(load, cwd=tmp_path, env=_env(tmp_path), capture_output=True, text=True, timeout=120)
     assert ok.returncode == 0 and ok.stdout.strip() == "VibratingString", ok.stderr[-2000:]
+    # a scene of one's own is a module outside lnf: it is built only when trusted by name (here: not trusted)
+    untrusted = subprocess.run([sys.executable, "-c", f"import lnf; lnf.load({str(ckpt)!r})"], cwd=tmp_path,
+                               env=_env(tmp_path), capture_output=True, text=True, timeout=120)
+    assert untrusted.returncode != 0 and "UntrustedTargetError" in untrusted.stderr
+    assert "trust=['vibrating_string']" in untrusted.stderr and "LNF_TRUST=vibrating_string" in untrusted.stderr
     lost = subprocess.run(load, cwd=tmp_path, env=_env(tmp_path, with_examples=False), capture_output=True,
                           text=True, timeout=120)
     assert lost.returncode != 0 and "cannot import module 'vibrating_string'" in lost.stderr
@@ -61,7 +67,7 @@ def test_the_vibrating_string_trains_evaluates_draws_and_loads_from_its_own_conf
 
     sys.path.insert(0, str(EXAMPLES))
     metrics = evaluate(compose_config("evaluate", [f"ckpt_path={ckpt}", "grid.kind=random", "grid.n_points=50",
-                                                   "figures=0"], tmp_path / "eval"))
+                                                   "figures=0", "trust=[vibrating_string]"], tmp_path / "eval"))
     assert "field_rel_l2/all/median" in metrics and metrics["diverged_count"] >= 0
 
 

@@ -600,3 +600,26 @@ def test_the_environment_can_turn_the_pdf_off(tmp_path, monkeypatch):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.png"]
     save_figure(fig, tmp_path / "b.png", pdf=True)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.png", "b.pdf", "b.png"]
+
+
+def test_figure3_leaves_the_cut_out_of_an_l_shaped_body_empty(data):
+    """Nodes of an L-shaped membrane (the square [0, 1]² less its upper-right quarter): the triangles drawn cover the
+    L, and none bridges its cut-out, which the convex hull's triangulation used to fill."""
+    g = (np.arange(20) + 0.5) / 20
+    X, Y = np.meshgrid(g, g, indexing="ij")
+    pts = np.c_[X.ravel(), Y.ravel()]
+    pts = pts[~((pts[:, 0] > 0.5) & (pts[:, 1] > 0.5))]
+    u = np.sin(np.pi * pts[:, 0]) * np.sin(np.pi * pts[:, 1])
+    true = data["q_proj"] * u[None, :]
+    fig = _figure3_on_points(data, pts, [[0.0, 1.0], [0.0, 1.0]], 1.05 * true, true, [12, 87])
+    panels = [ax for ax in fig.axes[3:] if ax.get_label() != "<colorbar>"]
+    drawn = []
+    for path in panels[0].collections[0].get_paths():
+        corners = np.asarray(path.vertices)[:3]
+        drawn.append(corners.mean(axis=0))
+    drawn = np.asarray(drawn)
+    assert len(drawn) > 500  # the L's own triangles (2 per cell of its 300 points) are all drawn
+    deep = (drawn[:, 0] > 0.6) & (drawn[:, 1] > 0.6)  # centroids in the cut-out, away from its re-entrant corner
+    assert not deep.any(), drawn[deep]
+    assert np.isfinite(np.asarray(panels[0].collections[0].get_array(), dtype=float)).all()
+    _close(fig)

@@ -177,3 +177,90 @@ def test_settings_a_model_does_not_take_are_dropped_with_a_warning(caplog):
                             {"_target_": "lnf.quadrature.GaussLegendre"})
     assert type(model).__name__ == "PODGalerkin"
     assert caplog.text.count("PODGalerkin takes no model.width: dropped") == 1
+
+
+class _HalfGradientSquare(DiscretePotential):
+    """V = ½ k Σ_j w_j (∂q/∂X)_j²: a potential of ∇_X q."""
+
+    needs_gradient = True
+
+    def __init__(self, weights, k):
+        self.weights, self.k = weights, k
+
+    def __call__(self, q, G=None):
+        return 0.5 * self.k * torch.einsum("bn,n->b", G[..., 0, 0] ** 2, self.weights.to(G))
+
+
+class _StrainWithoutGradients(StandingWave):
+    """A potential of ∇_X q, and no field_gradients(): only the gradient loss needs those."""
+
+    def potential(self, quadrature):
+        return _HalfGradientSquare(quadrature.weights, self.k)
+
+
+def test_check_scene_demands_field_gradients_only_where_the_run_needs_them():
+    report = check_scene(_StrainWithoutGradients())
+    assert report.ok, str(report)
+    assert any("field_gradients" in s and "gradient_weight" in s for s in report.skipped)
+    with pytest.raises(SceneCheckError, match=r"field_gradients: model\.gradient_weight=0\.1 \(the gradient loss\) "
+                                              r"needs field_gradients\(\), which .*_StrainWithoutGradients does not"):
+        check_scene(_StrainWithoutGradients(),
+                    needs={"field_gradients": "model.gradient_weight=0.1 (the gradient loss)"})
+    with pytest.raises(ValueError, match=r"unknown capabilities \['gradients'\]"):
+        check_scene(StandingWave(), needs=["gradients"])
+
+
+def test_check_scene_names_the_methods_of_each_capability_the_run_needs():
+    class Trajectories(StandingWave):  # no simulator
+        simulate = Scene.simulate
+        sample_initial_states = Scene.sample_initial_states
+
+    assert check_scene(Trajectories()).ok
+    with pytest.raises(SceneCheckError, match=r"simulator: this run needs simulate\(\) and sample_initial_states\(\)"):
+        check_scene(Trajectories(), needs=["simulator"])
+    report = check_scene(StandingWave(), needs=["simulator", "fields", "true_energies"], simulate=False)
+    assert report.ok and any("simulate=False" in s for s in report.skipped)
+
+
+def _untrained_model():
+    from lnf.model import LagrangianNeuralField
+
+    torch.manual_seed(0)
+    return LagrangianNeuralField(StandingWave(), latent_dim=1, width=16, hyper_width=8)
+
+
+def test_float64_codes_and_fields_are_taken_and_come_back_in_the_models_dtype():
+    """NumPy's float64 used to stop reduce, rollout and decode with torch's 'mat1 and mat2 must have the same dtype'."""
+    model = _untrained_model()
+    points = torch.linspace(0.05, 0.95, 16, dtype=torch.float64)[:, None]
+    values = 0.3 * torch.sin(np.pi * points)[None].repeat(2, 1, 1)
+    q0 = model.reduce(points, values)
+    v0 = model.project_velocity(q0.double(), points, values)
+    assert q0.dtype == v0.dtype == torch.float32
+    traj = model.rollout(q0.double(), v0.double(), dt=0.05, steps=3)
+    assert traj.q.dtype == torch.float32 and torch.isfinite(traj.q).all()
+    fields = model.decode(traj.q[:, -1].double().numpy(), points.numpy())
+    assert fields.dtype == torch.float32 and fields.shape == (2, 16, 1)
+    assert torch.allclose(fields, model.decode(traj.q[:, -1], points.float()))
+    kinetic, potential = model.energy(traj.q.double(), traj.v.double())
+    assert kinetic.dtype == potential.dtype == torch.float32
+
+
+def test_decode_outside_the_bodys_bounds_warns_once_per_call_or_refuses():
+    import warnings
+
+    from lnf.reduced_model import OutsideBodyWarning
+
+    model = _untrained_model()
+    codes = torch.zeros(1, 1)
+    points = torch.tensor([[-0.5], [0.0], [0.5], [1.0], [1.5], [2.0]])
+    outside = r"decode: 3 of 6 points lie outside the body's bounds \[\[0\.0, 1\.0\]\]"
+    with pytest.warns(OutsideBodyWarning, match=outside) as caught:
+        model.decode(codes, points)
+    assert len(caught) == 1
+    with pytest.raises(ValueError, match=r"3 of 6 points lie outside the body's bounds"):
+        model.decode(codes, points, outside="error")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        model.decode(codes, points, outside="ignore")
+        model.decode(codes, points[1:4])  # inside, the ends included: no warning

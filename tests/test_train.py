@@ -123,6 +123,63 @@ def test_bad_model_config_is_a_clear_error(override, match, tmp_path):
         train(cfg)
 
 
+# NaN, inf and out-of-range numbers are refused before any work starts, naming the key: each used to fail deep
+# inside (int(nan): "cannot convert float NaN to integer"), to train to a misleading hint ("lower optimizer.lr",
+# every rollout "diverged at step 0 … try a smaller dt") or to train nothing (lr=0).
+BAD_NUMBERS = [
+    ("model.latent_dim=nan", r"model\.latent_dim must be an integer ≥ 1 \(the latent dimension d\), got nan"),
+    ("model.latent_dim=2.5", r"model\.latent_dim must be an integer ≥ 1.*got 2.5"),
+    ("seed=nan", r"seed must be an integer ≥ 0 and ≤ 4294967295 \(the random seed\), got nan"),
+    ("seed=-1", r"seed must be an integer ≥ 0.*got -1"),
+    ("integrator.tol=nan", r"integrator\.tol must be a finite number > 0 \(the tolerance of the implicit solve\), "
+                           r"got nan"),
+    ("integrator.substeps=inf", r"integrator\.substeps must be an integer ≥ 1.*got inf"),
+    ("optimizer.weight_decay=nan", r"optimizer\.weight_decay must be a finite number ≥ 0 \(Adam's weight decay\), "
+                                   r"got nan"),
+    ("optimizer.lr=0", r"optimizer\.lr must be a finite number > 0 \(the learning rate of the field; 0 trains "
+                       r"nothing\), got 0"),
+    ("optimizer.lr=-1e-3", r"optimizer\.lr must be a finite number > 0.*got -0.001"),
+    ("optimizer.lr=inf", r"optimizer\.lr must be a finite number > 0.*got inf"),
+    ("optimizer.min_lr_ratio=2", r"optimizer\.min_lr_ratio must be a finite number ≥ 0 and ≤ 1.*got 2"),
+    ("optimizer.warmup_steps=nan", r"optimizer\.warmup_steps must be an integer ≥ 0.*got nan"),
+    ("model.w0=nan", r"model\.w0 must be a finite number > 0.*got nan"),
+    ("model.step_size=0", r"model\.step_size must be a finite number > 0.*got 0"),
+    ("scene.mass=nan", r"scene\.mass must be a finite number, got nan"),
+    ("scene.theta0_range=[0,inf]", r"scene\.theta0_range\[1\] must be a finite number, got inf"),
+    ("data.noise=nan", r"data\.noise must be a finite number, got nan"),
+    ("evaluation.long_dt=nan", r"evaluation\.long_dt must be a finite number, got nan"),
+    ("trainer.gradient_clip_val=nan", r"trainer\.gradient_clip_val must be a finite number, got nan"),
+    ("dynamics=latent_mlp dynamics.lr=nan", r"dynamics\.lr must be a finite number > 0.*got nan"),
+]
+
+
+@pytest.mark.parametrize("override,match", BAD_NUMBERS, ids=[o for o, _ in BAD_NUMBERS])
+def test_non_finite_and_out_of_range_settings_are_refused_before_any_work(override, match, tmp_path, monkeypatch):
+    import lnf.train
+
+    def no_data(*args, **kwargs):
+        raise AssertionError("work started before the settings were checked")
+
+    monkeypatch.setattr(lnf.train, "LNFModule", no_data)
+    cfg = compose_config("train", ["+experiment=pendulum", "trainer=smoke", "logger=none", *TINY, *override.split()],
+                         tmp_path)
+    with pytest.raises(ValueError, match=match):
+        train(cfg)
+    assert not (tmp_path / "data").exists() and not (tmp_path / "out" / "checkpoints").exists()
+
+
+def test_module_refuses_a_zero_or_non_finite_learning_rate():
+    """The Python API (LNFModule without lnf.train) refuses them too."""
+    from lnf.training.module import LNFModule
+
+    specs = dict(scene={"_target_": "lnf.scenes.LiftedPendulum"}, model={"width": 8, "hyper_width": 4},
+                 quadrature={"_target_": "lnf.quadrature.GaussLegendre", "order": 2})
+    for optimizer, match in (({"lr": 0.0}, r"optimizer\.lr must be a finite number > 0"),
+                             ({"weight_decay": float("nan")}, r"optimizer\.weight_decay must be a finite number ≥ 0")):
+        with pytest.raises(ValueError, match=match):
+            LNFModule(optimizer=optimizer, **specs)
+
+
 def test_cli_multirun_sweep(tmp_path):
     """The documented sweep command, with tiny settings, through the real CLI."""
     env = {**os.environ, "LNF_ROOT": str(tmp_path), "WANDB_MODE": "offline"}
@@ -232,3 +289,72 @@ def test_evaluate_with_tabulated_dynamics_matches_the_exact_pullback(trained, tm
         assert table["field_rel_l2/all/median"] == pytest.approx(exact["field_rel_l2/all/median"], rel=1e-3, abs=1e-4)
     with pytest.raises(ValueError, match="can switch between"):
         evaluate(compose_config("evaluate", [*common, "dynamics=latent_mlp"], tmp_path))
+
+
+@pytest.mark.parametrize("target, match", [
+    ("lnf.scenes.LiftedPendulm", r"scene\._target_=lnf\.scenes\.LiftedPendulm: module 'lnf\.scenes' .* has no "
+                                 r"'LiftedPendulm'.*Did you mean 'lnf\.scenes\.LiftedPendulum'"),
+    ("lnf.scens.LiftedPendulum", r"scene\._target_=lnf\.scens\.LiftedPendulum: cannot import module 'lnf\.scens' .*"
+                                 r"no module named 'lnf\.scens'; did you mean 'lnf\.scenes'\?.*PYTHONPATH"),
+], ids=["class", "module"])
+def test_a_misspelt_scene_class_names_the_key_the_value_and_what_is_wrong(target, match, tmp_path):
+    """Hydra used to say only "Error locating target" (full_key: data.scene)."""
+    cfg = compose_config("train", ["+experiment=pendulum", "trainer=smoke", "logger=none", *TINY,
+                                   f"scene._target_={target}"], tmp_path)
+    with pytest.raises(ValueError, match=match):
+        train(cfg)
+
+
+class NoPotential(lnf.scenes.Scene):
+    """A user's 1-D chain that forgot potential(): it used to train its whole budget and fail at the test."""
+
+    field_dim, bounds, energy_scale = 1, [[0.0, 1.0]], 1.0
+
+    def params(self):
+        return {}
+
+    def density(self, points):
+        return torch.ones(points.shape[:-1], dtype=points.dtype)
+
+    def sample_initial_states(self, n, rng):
+        return rng.uniform(-1, 1, size=(n, 2))
+
+    def simulate(self, initial_states, times):
+        a = initial_states[:, None, :1] * np.cos(times)[None, :, None]
+        return np.concatenate([a, -initial_states[:, None, :1] * np.sin(times)[None, :, None]], axis=-1)
+
+    def fields(self, states, points):
+        mode = np.sin(np.pi * points[:, 0])[:, None]
+        return states[..., 0, None, None] * mode, states[..., 1, None, None] * mode
+
+    def true_energy_parts(self, states):
+        return 0.25 * states[..., 1] ** 2, 0.25 * states[..., 0] ** 2
+
+
+def test_a_scene_without_potential_is_refused_before_any_data_or_training(tmp_path):
+    from omegaconf import open_dict
+
+    from lnf.scenes.check import SceneCheckError
+
+    cfg = compose_config("train", ["+experiment=pendulum", "trainer=smoke", "logger=none", *TINY], tmp_path)
+    with open_dict(cfg):
+        cfg.scene = {"_target_": f"{NoPotential.__module__}.NoPotential"}
+    with pytest.raises(SceneCheckError, match=r"scene\._target_=.*NoPotential: the scene fails check_scene(.|\n)*"
+                                              r"does not define potential\(\)"):
+        train(cfg)
+    assert not list((tmp_path / "data").glob("*.h5")) and not (tmp_path / "out" / "checkpoints").exists()
+
+
+def test_the_gradient_loss_asks_the_scene_for_field_gradients_before_any_data(tmp_path):
+    from omegaconf import open_dict
+
+    from lnf.scenes.check import SceneCheckError
+
+    cfg = compose_config("train", ["+experiment=pendulum", "trainer=smoke", "logger=none", *TINY,
+                                   "model.gradient_weight=0.1"], tmp_path)
+    with open_dict(cfg):
+        cfg.scene = {"_target_": "lnf.scenes.LiftedPendulum"}
+    with pytest.raises(SceneCheckError, match=r"field_gradients: model\.gradient_weight=0\.1 \(the gradient loss\) "
+                                              r"needs field_gradients\(\)"):
+        train(cfg)
+    assert not list((tmp_path / "data").glob("*.h5"))

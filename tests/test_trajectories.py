@@ -9,7 +9,8 @@ import pytest
 import torch
 
 from helpers import TINY, compose_config
-from lnf.dataset import DatasetConfig, DatasetError, ensure_dataset, load_split, verify_dataset
+from lnf.dataset import (DatasetConfig, DatasetError, _write_array, ensure_dataset, load_split, stored_generation,
+                         verify_dataset)
 from lnf.scenes import LiftedPendulum
 from lnf.trajectories import Trajectories, write_dataset
 
@@ -41,6 +42,8 @@ def _digest(path):
     (dict(weights=-np.ones(9)), "positive quadrature weights"),
     (dict(kinetic=np.zeros((2, 12))), "give both energy parts or neither"),
     (dict(states=np.zeros((3, 12, 2))), "states: expected shape (n, T, S) = (2, 12, S)"),
+    (dict(fields=np.ones((2, 12, 9)) * (1 + 1j)), "fields: got a complex array (dtype complex128); lnf expects real"),
+    (dict(points=np.linspace(0, 1, 9) + 0j), "points: got a complex array (dtype complex128)"),
 ])
 def test_trajectories_refuse_bad_arrays_by_name(change, message):
     good = dict(points=np.linspace(0, 1, 9), times=0.1 * np.arange(12), fields=np.zeros((2, 12, 9)))
@@ -102,6 +105,92 @@ def test_splits_must_share_points_and_times_and_scene_must_fit(tmp_path):
     with pytest.raises(DatasetError, match="points have 1 coordinates, but scene 'pendulum' has a 2-D body"):
         write_dataset(tmp_path / "a.h5", train, val, test, scene=LiftedPendulum())
     assert not (tmp_path / "a.h5").exists()
+
+
+def _on(points: np.ndarray, n: int, seed: int) -> Trajectories:
+    """n random trajectories (T = 4) on `points`."""
+    return Trajectories(points=points, times=0.1 * np.arange(4),
+                        fields=np.random.default_rng(seed).normal(size=(n, 4, len(points))))
+
+
+def test_points_are_kept_in_float64_and_float32_collisions_are_refused(tmp_path):
+    far = 1e7 + 0.1 * np.arange(50)  # distinct in float64, 6 distinct values in float32 (the model's precision)
+    with pytest.raises(DatasetError, match=r"far\.h5: points: 44 pair\(s\) of distinct points become one point in "
+                                           r"float32.*points 0 and 1.*Shift and/or scale the coordinates"):
+        write_dataset(tmp_path / "far.h5", _on(far, 2, 0), _on(far, 1, 1), _on(far, 1, 2))
+    assert not (tmp_path / "far.h5").exists()
+    shifted = far - 1e7  # what the message suggests: the same 50 points, distinct in float32 too
+    path = write_dataset(tmp_path / "near.h5", _on(shifted, 2, 0), _on(shifted, 1, 1), _on(shifted, 1, 2))
+    with h5py.File(path) as f:
+        assert f["grids/fine"].dtype == np.float64
+        np.testing.assert_array_equal(f["grids/fine"][:, 0], shifted)  # stored exactly, not rounded
+    assert len(np.unique(load_split(path, "train").fine_points)) == 50
+
+    with h5py.File(path, "r+") as f:  # a file of an older lnf, which stored the points as float32: merged
+        del f["grids/coarse"], f["grids/fine"]
+        _write_array(f, "grids/fine", far.astype(np.float32)[:, None])
+        f["grids/coarse"] = f["grids/fine"]
+    for read in (lambda: verify_dataset(path), lambda: load_split(path, "train")):
+        with pytest.raises(DatasetError, match=r"near\.h5: /grids/fine: points 0 and 1 are the same point "
+                                               r"\[10000000.0\], given twice with different /train/fields.*stores "
+                                               r"its points in float32"):
+            read()
+
+
+def test_a_point_given_twice_needs_the_same_values(tmp_path):
+    points = np.r_[np.linspace(0, 1, 5), 0.5]  # point 5 repeats point 2 (a mesh node duplicated at a seam)
+    with pytest.raises(DatasetError, match=r"a\.h5: points: points 2 and 5 are the same point \[0.5\], given twice "
+                                           r"with different train fields \(trajectory 0, sample 0"):
+        write_dataset(tmp_path / "a.h5", _on(points, 2, 0), _on(points, 1, 1), _on(points, 1, 2))
+    assert not (tmp_path / "a.h5").exists()
+
+    def seam(n: int, seed: int) -> Trajectories:  # the same values at both copies: one point, given twice
+        part = _on(points, n, seed)
+        part.fields[:, :, 5] = part.fields[:, :, 2]
+        return Trajectories(points=points, times=part.times, fields=part.fields)
+
+    path = write_dataset(tmp_path / "b.h5", seam(2, 0), seam(1, 1), seam(1, 2))
+    assert verify_dataset(path) == path and load_split(path, "val").fine_points.shape == (6, 1)
+
+
+def test_splits_sharing_a_trajectory_are_refused(tmp_path, caplog):
+    points = np.linspace(0, 1, 5)
+    train, val, test = _on(points, 3, 0), _on(points, 1, 1), _on(points, 2, 2)
+    with pytest.raises(DatasetError, match=r"a\.h5: the test split is identical to the train split \(e\.g\. test "
+                                           r"trajectory 0 is train trajectory 0.*leaks the training data"):
+        write_dataset(tmp_path / "a.h5", train, val, train)
+    with pytest.raises(DatasetError, match=r"1 of the 2 test trajectories is also in the train split \(e\.g\. "
+                                           r"test trajectory 1 is train trajectory 2"):
+        write_dataset(tmp_path / "a.h5", train, val, Trajectories.stack([test.select(0), train.select(2)]))
+    with pytest.raises(DatasetError, match=r"1 of the 1 val trajectories is also in the train split"):
+        write_dataset(tmp_path / "a.h5", train, train.select(1), test)
+    assert not (tmp_path / "a.h5").exists()
+    with caplog.at_level("WARNING", logger="lnf.trajectories"):  # val = test: written, with a warning
+        path = write_dataset(tmp_path / "b.h5", train, test, test)
+    assert "the test split is identical to the val split" in caplog.text and verify_dataset(path) == path
+
+
+def test_edited_generation_attributes_are_found(tmp_path):
+    path = write_dataset(tmp_path / "mine.h5", *_splits(), train_times=6)
+    with h5py.File(path, "r+") as f:  # the training horizon edited by hand: the arrays' checksums still hold
+        generation = json.loads(f.attrs["lnf_generation"])
+        f.attrs["lnf_generation"] = json.dumps({**generation, "train_times": 10})
+    before = _digest(path)
+    message = r"mine\.h5: root attribute lnf_generation does not match its checksum in lnf_attributes_checksum"
+    for read in (lambda: verify_dataset(path), lambda: load_split(path, "train"), lambda: stored_generation(path),
+                 lambda: ensure_dataset(LiftedPendulum(), DatasetConfig(), path)):
+        with pytest.raises(DatasetError, match=message + ".*cannot be regenerated"):
+            read()
+    assert _digest(path) == before  # refused, never regenerated
+
+    with h5py.File(path, "r+") as f:  # a file of an older lnf has no attribute checksums: verified as before ...
+        del f.attrs["lnf_attributes_checksum"]
+    assert verify_dataset(path) == path and load_split(path, "train").train_times == 10
+    with h5py.File(path, "r+") as f:  # ... and what its datasets tell is still compared
+        f.attrs["lnf_generation"] = json.dumps({**generation, "n_times": 20, "observed_fraction": 0.5})
+    with pytest.raises(DatasetError, match=r"mine\.h5: root attribute lnf_generation disagrees with the data: "
+                                           r"n_times = 20, but the file holds 12.*observed_fraction = 0.5"):
+        verify_dataset(path)
 
 
 def _pendulum_arrays(scene: LiftedPendulum, n: int, T: int, points: np.ndarray, rng) -> Trajectories:

@@ -170,8 +170,8 @@ class PODGalerkin(ReducedModel):
     def reduce(self, points: Tensor, values: Tensor, steps: Optional[int] = None) -> Tensor:
         """ρ(q) = argmin_q̃ Σ_j ω0 ‖m(X_j) + Φ(X_j) q̃ − q_j‖²: exact least squares (B, N, A) → (B, d)."""
         self._check_fitted()
-        values = as_field(values)
-        points = points.to(values)
+        values = as_field(self.as_model(values))
+        points = self.as_model(points)
         self._check_observation(points, values, "values")
         zero = values.new_zeros(values.shape[0], self.latent_dim)
         jet = self.field.jet(zero, points, order=1)

@@ -19,6 +19,7 @@ the caller's to drop (``free_dofs``).
 from __future__ import annotations
 
 import contextlib
+import logging
 from pathlib import Path
 from typing import Any, Optional, Sequence, Union
 
@@ -29,6 +30,8 @@ import torch
 from skfem.helpers import ddot, grad
 
 from lnf.fem.materials import HyperelasticMaterial, determinant
+
+log = logging.getLogger("lnf.fem")
 
 # scikit-fem mesh type → the linear element on it
 ELEMENTS: dict[type, type] = {
@@ -310,39 +313,123 @@ def box_mesh(lengths: Sequence[float], cells: Sequence[int], kind: str = "quad")
     return kinds[len(axes)][kind].init_tensor(*axes)
 
 
-def read_mesh(path: Union[str, Path]) -> tuple[skfem.Mesh, dict[str, np.ndarray]]:
-    """A mesh file that meshio reads, as a scikit-fem mesh of its highest-dimensional linear cells, and its named
-    point sets (boolean node masks, from meshio point sets and from the nodes of its cell sets)."""
+def read_mesh(path: Union[str, Path], units: Optional[str] = None,
+              key: str = "units") -> tuple[skfem.Mesh, dict[str, np.ndarray]]:
+    """A mesh file that meshio reads, as a scikit-fem mesh of its cells (see :func:`from_meshio`) in metres, and its
+    named point sets (boolean node masks, from meshio point sets and from the nodes of its cell sets).
+
+    `units`: the length unit of the file's coordinates (a key of :data:`MESH_UNITS`: ``m``, ``cm``, ``mm``, …);
+    the nodes are scaled to metres. None: metres, when the mesh's largest extent is a plausible body's
+    (:data:`PLAUSIBLE_EXTENT` [m]); otherwise a ValueError asks for the unit (a mesh drawn in millimetres is not
+    taken for one 1000 times larger). The mesh, its extent and its unit are logged (``lnf.fem``); a stated unit
+    that gives an implausible extent is warned of. `key`: the setting named in messages (``scene.mesh_units``)."""
     from lnf.mesh_io import read_meshio
 
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"mesh file {path}: not found")
-    return from_meshio(read_meshio(path), str(path))
+    if units is not None and str(units) not in MESH_UNITS:
+        raise ValueError(f"{key}={units!r}: not a length unit lnf knows; expected one of {', '.join(MESH_UNITS)} "
+                         f"(the unit of the coordinates in {path})")
+    raw = read_meshio(path)
+    mesh, sets = from_meshio(raw, str(path))
+    extent = np.ptp(mesh.p, axis=1)  # in the file's unit
+    size = " × ".join(f"{e:.4g}" for e in extent)
+    lo, hi = PLAUSIBLE_EXTENT
+    if units is None:
+        if not lo <= extent.max() <= hi:
+            raise ValueError(
+                f"{path}: {key} is not set and the mesh spans {size} in its own unit: as metres, a "
+                f"{extent.max():.4g} m body, outside the {lo:g}–{hi:g} m lnf expects; state the unit of its "
+                f"coordinates, e.g. {key}=mm (then {extent.max() * MESH_UNITS['mm']:.4g} m) or {key}=m to take it as it is "
+                f"(one of {', '.join(MESH_UNITS)})")
+        unit, stated = "m", f"read as metres ({key} not set: metres by default)"
+    else:
+        unit = str(units)
+        stated = "read as metres" if unit == "m" else f"read as {UNIT_NAMES[unit]}, scaled to metres"
+    scale = MESH_UNITS[unit]
+    if scale != 1.0:
+        mesh = type(mesh)(mesh.p * scale, mesh.t)
+    cells = f"{mesh.t.shape[1]} {MESHIO_NAMES[type(mesh)]}"
+    in_metres = " × ".join(f"{e:.4g}" for e in extent * scale)
+    log.info("mesh %s: %d nodes, %s, extent %s %s -> %s%s", path, mesh.p.shape[1], cells, size, unit, stated,
+             "" if scale == 1.0 else f" ({in_metres} m)")
+    if units is not None and not lo <= extent.max() * scale <= hi:
+        log.warning("mesh %s: extent %s %s%s, read with %s=%s, is outside the %g–%g m of a plausible body: are its "
+                    "coordinates in %s? If not, set %s to their unit (one of %s)", path, size, unit,
+                    "" if scale == 1.0 else f" = {in_metres} m", key, unit, lo, hi, UNIT_NAMES[unit], key,
+                    ", ".join(MESH_UNITS))
+    return mesh, sets
 
+
+# length units of a mesh file's coordinates, as metres
+MESH_UNITS: dict[str, float] = {"m": 1.0, "dm": 0.1, "cm": 0.01, "mm": 1e-3, "um": 1e-6, "in": 0.0254,
+                                "ft": 0.3048}
+UNIT_NAMES = {"m": "metres", "dm": "decimetres", "cm": "centimetres", "mm": "millimetres", "um": "micrometres",
+              "in": "inches", "ft": "feet"}
+# the largest extent [m] of a body lnf's scenes expect (a soft finger: 0.5 m); outside: an error when the unit is
+# not stated, a warning when it is
+PLAUSIBLE_EXTENT = (1e-3, 10.0)
 
 MESHIO_CELLS = ("tetra", "hexahedron", "triangle", "quad")
+# the linear cells of lnf's finite-element body (meshio's names), by the dimension they fill
+FEM_CELLS = {3: ("tetra", "hexahedron"), 2: ("triangle", "quad")}
+MESHIO_NAMES = {skfem.MeshTri1: "triangle", skfem.MeshQuad1: "quad", skfem.MeshTet1: "tetra",
+                skfem.MeshHex1: "hexahedron"}
+
+
+def body_cell_type(raw: Any, source: str = "mesh") -> str:
+    """The meshio type of the cells that fill a meshio mesh's body (those of its highest dimension; lower ones are
+    boundaries and named sets). A ValueError naming the file, the cell types and their counts when the body is
+    not all of one linear type lnf supports: a body is never kept in part."""
+    counts: dict[str, int] = {}
+    dims: dict[str, int] = {}
+    for block in raw.cells:
+        counts[block.type] = counts.get(block.type, 0) + len(block.data)
+        dims[block.type] = int(block.dim)  # meshio's topological dimension of the cell type
+    listed = ", ".join(f"{n} {t}" for t, n in counts.items()) or "none"
+    top = max([d for t, d in dims.items() if counts[t] > 0], default=0)
+    if top < 2:
+        raise ValueError(f"{source}: no triangles, quadrilaterals, tetrahedra or hexahedra (cells: {listed}); lnf "
+                         f"needs a body of linear cells: {' or '.join(FEM_CELLS[3])} in 3-D, "
+                         f"{' or '.join(FEM_CELLS[2])} in 2-D")
+    body = {t: n for t, n in counts.items() if dims[t] == top and n > 0}
+    supported = FEM_CELLS.get(top, ())
+    unknown = [t for t in body if t not in supported]
+    if unknown:
+        higher = [t for t in unknown if t.rstrip("0123456789") != t]
+        raise ValueError(
+            f"{source}: its {top}-D body has {', '.join(f'{body[t]} {t}' for t in unknown)} cells, which lnf cannot "
+            f"use (cells: {listed}); lnf's finite-element body is made of linear {' or '.join(supported)} cells "
+            f"(and {' or '.join(FEM_CELLS[5 - top])} in {5 - top}-D), all of one type: re-mesh or convert it"
+            + (" (first-order elements: the mesher's element order 1, e.g. gmsh -order 1)" if higher else
+               f" (e.g. all {supported[0]})"))
+    if len(body) > 1:
+        raise ValueError(
+            f"{source}: its {top}-D body mixes {' and '.join(f'{n} {t}' for t, n in body.items())} cells; lnf's "
+            f"finite-element body is of one cell type ({' or '.join(supported)}) and would keep only part of it: "
+            f"re-mesh or convert it to one type (e.g. all {supported[0]})")
+    return next(iter(body))
 
 
 def from_meshio(raw: Any, source: str = "mesh") -> tuple[skfem.Mesh, dict[str, np.ndarray]]:
-    """(scikit-fem mesh, named node masks) of a meshio mesh (see :func:`read_mesh`): scikit-fem converts the cells
-    (and reorders a hexahedron's corners); nodes that no cell uses (a mesher's geometry points) are dropped."""
+    """(scikit-fem mesh, named node masks) of a meshio mesh (see :func:`read_mesh`): its body is all its cells of
+    the highest dimension, which must be of one type of :data:`FEM_CELLS` (:func:`body_cell_type`); scikit-fem
+    converts them (and reorders a hexahedron's corners); the nodes stay in float64; nodes that no cell uses (a
+    mesher's geometry points) are dropped."""
     import skfem.io.meshio
 
-    types = {b.type for b in raw.cells}
-    if not types & set(MESHIO_CELLS):
-        raise ValueError(f"{source}: no triangles, quadrilaterals, tetrahedra or hexahedra (cells: {sorted(types)}); "
-                         "lnf needs linear cells")
+    kind = body_cell_type(raw, source)
     try:
-        full = skfem.io.meshio.from_meshio(raw)
+        full = skfem.io.meshio.from_meshio(raw, force_meshio_type=kind)
     except Exception as err:
-        raise ValueError(f"{source}: scikit-fem cannot convert it ({type(err).__name__}: {err})") from err
+        raise ValueError(f"{source}: scikit-fem cannot convert its {kind} cells ({type(err).__name__}: {err})") from err
     if type(full) not in ELEMENTS:
         raise ValueError(f"{source}: a {type(full).__name__}; lnf needs linear cells {list(MESHIO_CELLS)}")
     used = np.unique(full.t)
     renumber = -np.ones(full.p.shape[1], dtype=np.int64)
     renumber[used] = np.arange(len(used))
-    mesh = type(full)(full.p[:, used].copy(), renumber[full.t].copy())
+    mesh = type(full)(np.asarray(full.p[:, used], dtype=np.float64).copy(), renumber[full.t].copy())
     n_raw = len(raw.points)
     sets: dict[str, np.ndarray] = {}
     for name, idx in (getattr(raw, "point_sets", None) or {}).items():

@@ -1,6 +1,7 @@
 """Time integration of reduced dynamics: common interface, trajectory container, divergence handling."""
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Callable, Optional, Protocol
 
@@ -15,13 +16,39 @@ class Dynamics(Protocol):
 class RolloutDivergedError(RuntimeError):
     """A rollout produced non-finite or exploding states; says where."""
 
-    def __init__(self, step: int, time: float, trajectories: list[int], integrator: str, dt: float) -> None:
-        self.step, self.time, self.trajectories = step, time, trajectories
+    def __init__(self, step: int, time: float, trajectories: list[int], integrator: str, dt: float,
+                 cause: Optional[str] = None) -> None:
+        self.step, self.time, self.trajectories, self.cause = step, time, trajectories, cause
+        where = (f"rollout diverged with {integrator} (dt={dt:g}) at step {step}, t={time:.6g}, "
+                 f"trajectories {trajectories[:10]}{' …' if len(trajectories) > 10 else ''}")
         super().__init__(
-            f"rollout diverged with {integrator} (dt={dt:g}) at step {step}, t={time:.6g}, "
-            f"trajectories {trajectories[:10]}{' …' if len(trajectories) > 10 else ''}: state became non-finite "
-            "or exceeded the bound. Try a smaller dt (or integrator.substeps), another integrator, or check the model."
+            f"{where}: {cause}. {NOT_A_STEP_SIZE_PROBLEM}" if cause else
+            f"{where}: state became non-finite or exceeded the bound. Try a smaller dt (or integrator.substeps), "
+            "another integrator, or check the model."
         )
+
+
+NOT_A_STEP_SIZE_PROBLEM = ("This is not a step-size problem (a smaller dt or more substeps will not help): check the "
+                           "scene's potential and mass density at these states (lnf.scenes.check.check_scene) and the "
+                           "initial states")
+
+
+def initial_state_cause(dynamics: Dynamics, q0: Tensor, v0: Tensor, rows: list[int], t0: float = 0.0
+                        ) -> Optional[str]:
+    """Why trajectories `rows` cannot start, where the cause is at their initial state already: the state (q̃0, q̃̇0)
+    or the dynamics' acceleration there is non-finite (a scene's potential or mass that is NaN there, say); None
+    where both are finite (the rollout diverged on the way, which a smaller step may cure)."""
+    q, v = q0[rows], v0[rows]
+    if not bool(torch.isfinite(q).all() and torch.isfinite(v).all()):
+        return "the initial state (q̃0, q̃̇0) is already non-finite"
+    try:  # the whole batch: per-trajectory controls of a forced scene have its shape
+        acc = dynamics.acceleration(q0, v0, t0)
+    except Exception:  # noqa: BLE001 - a diagnosis only: the divergence is reported either way
+        return None
+    if not bool(torch.isfinite(acc[rows]).all()):
+        return ("the acceleration is already non-finite at the initial state (the pulled-back potential or mass, from "
+                "the scene's potential and mass density, or the model, is NaN or inf there)")
+    return None
 
 
 @dataclass
@@ -55,8 +82,11 @@ class Integrator:
     name = "integrator"
 
     def __init__(self, substeps: int = 1, max_abs: float = 1e6) -> None:
-        if int(substeps) != substeps or substeps < 1:
+        if not isinstance(substeps, (int, float)) or not math.isfinite(substeps) or int(substeps) != substeps \
+                or substeps < 1:
             raise ValueError(f"integrator.substeps must be an integer ≥ 1, got {substeps!r}")
+        if not (isinstance(max_abs, (int, float)) and max_abs > 0):  # inf: no bound, only non-finite states diverge
+            raise ValueError(f"integrator.max_abs must be a number > 0, got {max_abs!r}")
         self.substeps = int(substeps)
         self.max_abs = float(max_abs)
 
@@ -125,7 +155,9 @@ class FixedStepIntegrator(Integrator):
             bad = self._bad(*state) & alive
             if bad.any():
                 if on_divergence == "raise":
-                    raise RolloutDivergedError(n, t, bad.nonzero().flatten().tolist(), self.name, dt)
+                    rows = bad.nonzero().flatten().tolist()
+                    raise RolloutDivergedError(n, t, rows, self.name, dt,
+                                               initial_state_cause(dynamics, q0, v0, rows, t0) if n == 1 else None)
                 diverged[bad] = n
                 alive &= ~bad
                 if not alive.any():

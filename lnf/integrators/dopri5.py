@@ -1,13 +1,14 @@
 """Adaptive Dormand–Prince 5(4) from torchdiffeq, for reference solutions."""
 from __future__ import annotations
 
+import math
 from typing import Callable, Optional
 
 import torch
 from torch import Tensor
 from torchdiffeq import odeint
 
-from lnf.integrators.base import Dynamics, Integrator, RolloutDivergedError, Trajectory
+from lnf.integrators.base import Dynamics, Integrator, RolloutDivergedError, Trajectory, initial_state_cause
 
 
 class Dopri5(Integrator):
@@ -15,6 +16,9 @@ class Dopri5(Integrator):
 
     def __init__(self, rtol: float = 1e-9, atol: float = 1e-9, substeps: int = 1, max_abs: float = 1e6) -> None:
         super().__init__(substeps=substeps, max_abs=max_abs)
+        for key, value in (("rtol", rtol), ("atol", atol)):
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise ValueError(f"integrator.{key} must be a finite number > 0, got {value!r}")
         self.rtol, self.atol = float(rtol), float(atol)
 
     def __repr__(self) -> str:
@@ -37,7 +41,9 @@ class Dopri5(Integrator):
         try:
             ys = odeint(rhs, y0, times.to(q0.dtype), rtol=self.rtol, atol=self.atol, method="dopri5")
         except AssertionError as err:  # torchdiffeq signals step-size underflow with an assertion
-            raise RolloutDivergedError(-1, float("nan"), list(range(q0.shape[0])), self.name, dt) from err
+            rows = list(range(q0.shape[0]))
+            raise RolloutDivergedError(-1, float("nan"), rows, self.name, dt,
+                                       initial_state_cause(dynamics, q0, v0, rows, t0)) from err
         if progress is not None:  # torchdiffeq integrates the whole span in one call
             progress(steps)
         ys = ys.transpose(0, 1)  # (B, T, 2d)
@@ -47,6 +53,7 @@ class Dopri5(Integrator):
             first = int(bad.float().argmax(-1)[bad.any(-1)].min())
             if on_divergence == "raise":
                 rows = bad.any(-1).nonzero().flatten().tolist()
-                raise RolloutDivergedError(first * record_every, float(times[first]), rows, self.name, dt)
+                raise RolloutDivergedError(first * record_every, float(times[first]), rows, self.name, dt,
+                                           initial_state_cause(dynamics, q0, v0, rows, t0) if first <= 1 else None)
             ys = torch.where(bad.cumsum(-1)[..., None] > 0, float("nan"), ys)
         return Trajectory(times=times, q=ys[..., :d], v=ys[..., d:], diverged_step=diverged, steps=steps, dt=dt)

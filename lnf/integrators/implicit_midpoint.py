@@ -11,6 +11,8 @@ midpoint step per step.
 """
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import Tensor
 
@@ -25,8 +27,12 @@ class ImplicitMidpoint(FixedStepIntegrator):
         super().__init__(substeps=substeps, max_abs=max_abs)
         if order not in (2, 4):
             raise ValueError(f"integrator.order must be 2 or 4 for implicit_midpoint, got {order!r}")
-        if int(max_iter) != max_iter or max_iter < 1:
+        if not isinstance(max_iter, (int, float)) or not math.isfinite(max_iter) or int(max_iter) != max_iter \
+                or max_iter < 1:
             raise ValueError(f"integrator.max_iter must be an integer ≥ 1, got {max_iter!r}")
+        if not (isinstance(tol, (int, float)) and math.isfinite(tol) and tol > 0):
+            raise ValueError(f"integrator.tol must be a finite number > 0 (the tolerance of the implicit solve), "
+                             f"got {tol!r}")
         self.order, self.tol, self.max_iter = order, float(tol), int(max_iter)
         if order == 2:
             self.fractions = [1.0]

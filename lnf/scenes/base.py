@@ -130,7 +130,7 @@ class Scene:
     **Required core** (a scene cannot be trained without it):
 
     - ``field_dim`` (int): dim_A, components of the field values q(X) ∈ ℝ^A.
-    - ``bounds`` (list of [lo, hi]): the box holding the body B ⊂ ℝ^{dim_B}, one row per material dimension
+    - ``bounds`` (list of [lo, hi]): the box holding the body B, one row per material dimension
       (dim_B = 1, 2 or 3).
     - ``energy_scale`` (float > 0): the energy that energy errors are divided by.
     - :meth:`density`: ω0 (mass per unit reference volume) at material points.

@@ -4,13 +4,17 @@ It checks the required core (attributes, ω0, V), then each optional part the sc
 (:meth:`Scene.capabilities`): shapes and broadcasting over leading axes, a positive density, the potential V
 on a quadrature rule against the scene's own potential energy, and energy conservation of its simulator
 where the scene is conservative. Every problem found is reported with what to fix.
+
+Optional parts are demanded only where a run needs them: ``needs`` names those capabilities (the keys of
+:meth:`Scene.capabilities`), e.g. ``field_gradients`` for the gradient loss ``model.gradient_weight > 0``.
+``python -m lnf.train`` runs it with the needs of its configuration before it generates data or trains.
 """
 from __future__ import annotations
 
 import json
 import math
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any, Callable, Iterable, Mapping, Union
 
 import numpy as np
 import torch
@@ -21,6 +25,39 @@ from lnf.scenes.base import Scene
 
 class SceneCheckError(ValueError):
     """A scene failed :func:`check_scene`; the message lists every problem and what to fix."""
+
+
+#: The methods a scene defines for each capability that :func:`check_scene`'s ``needs`` may name.
+CAPABILITY_METHODS: dict[str, tuple[str, ...]] = {
+    "simulator": ("simulate", "sample_initial_states"), "fields": ("fields",),
+    "true_energies": ("true_energy_parts",), "field_gradients": ("field_gradients",), "clamp": ("clamp_factor",),
+    "kinetic_correction": ("kinetic_correction",), "release_at_rest": ("released_at_rest",),
+    "damping": ("with_damping",), "element_quadrature": ("element_quadrature",),
+}
+
+
+def _needs(needs: "Iterable[str] | Mapping[str, str]") -> dict[str, str]:
+    """`needs` as {capability: what needs it}; an unknown capability is a ValueError naming the known ones."""
+    named = dict(needs) if isinstance(needs, Mapping) else {n: "" for n in needs}
+    unknown = sorted(set(named) - set(CAPABILITY_METHODS))
+    if unknown:
+        raise ValueError(f"check_scene(needs=...) got unknown capabilities {unknown}; expected some of "
+                         f"{sorted(CAPABILITY_METHODS)}")
+    return named
+
+
+def _missing_needs(scene: Scene, needs: dict[str, str]) -> list[str]:
+    """One problem per needed capability whose methods the scene's class does not define."""
+    problems = []
+    cls = type(scene)
+    for cap, why in needs.items():
+        missing = [m for m in CAPABILITY_METHODS[cap] if not scene.provides(m)]
+        if missing:
+            methods = " and ".join(f"{m}()" for m in missing)
+            problems.append(f"{cap}: {why or 'this run'} needs {methods}, which {cls.__module__}.{cls.__qualname__} "
+                            f"does not define: define {'them' if len(missing) > 1 else 'it'} in the scene's class "
+                            f"(shapes and units: docs/own_system.md, lnf.scenes.Scene.{missing[0]})")
+    return problems
 
 
 @dataclass
@@ -126,9 +163,17 @@ def _simulated(scene: Scene, n: int, times: np.ndarray) -> tuple[np.ndarray, str
 
 def check_scene(scene: Scene, raise_on_problem: bool = True, n_trajectories: int = 2, n_times: int = 21,
                 dt: float = 0.05, quadrature_order: int = 12, potential_tolerance: float = 0.02,
-                energy_tolerance: float = 1e-3) -> SceneReport:
+                energy_tolerance: float = 1e-3, *, needs: "Iterable[str] | Mapping[str, str]" = (),
+                simulate: bool = True) -> SceneReport:
     """Check `scene` before training on it; returns the report, or raises :class:`SceneCheckError` listing every
     problem (with ``raise_on_problem``).
+
+    `needs`: the capabilities (keys of :meth:`Scene.capabilities`: ``simulator``, ``fields``, ``true_energies``,
+    ``field_gradients``, ``clamp``, ...) that the run needs, optionally as {capability: what needs it}; each one
+    the scene does not define is a problem naming its methods. Optional parts not needed are checked where the
+    scene defines them, and never demanded: a potential that needs ∇_X q is compared with the reference energies
+    only where the scene defines ``field_gradients``. `simulate`: False checks the declarations without running
+    the simulator (and leaves out the checks of its states).
 
     The potential is compared with the scene's own potential energy on `n_trajectories` simulated states, its
     fields sampled on a Gauss–Legendre rule of `quadrature_order` nodes per axis: within `potential_tolerance`
@@ -136,19 +181,28 @@ def check_scene(scene: Scene, raise_on_problem: bool = True, n_trajectories: int
     of ``energy_scale`` over `n_times` samples `dt` [s] apart.
     """
     report = SceneReport(scene=type(scene).__qualname__)
+    needed = _needs(needs)
+    missing = _missing_needs(scene, needed)
     if not _run(report, "required attributes (field_dim, bounds, energy_scale, params)", _core(scene)):
+        report.problems += missing
         return _finish(report, raise_on_problem)
+    report.problems += missing
+    if needed and not missing:
+        report.passed.append(f"the optional parts this run needs ({', '.join(needed)})")
     rule = gauss_legendre_rule(quadrature_order, scene.bounds)
     rule_text = f"a {quadrature_order}-point-per-axis Gauss–Legendre rule"
     if scene.provides("element_quadrature"):  # a body on a mesh: its elements' own rule (exact for its own fields)
         own = scene.element_quadrature()
         rule, rule_text = Quadrature(own.points.to(rule.points), own.weights.to(rule.weights)), "its mesh's element rule"
     _run(report, "density ω0 (shape, broadcasting, > 0)", _density(scene, rule.points))
-    _run(report, "potential V on a quadrature rule (shape, batch)", _potential(scene, rule))
+    potential_ok = _run(report, "potential V on a quadrature rule (shape, batch)", _potential(scene, rule))
     caps = scene.capabilities()
     if not caps["simulator"]:
         report.skipped.append("full-order simulator (simulate, sample_initial_states): not defined; train from "
                               "your own trajectories")
+        return _finish(report, raise_on_problem)
+    if not simulate:
+        report.skipped.append("full-order simulator and the checks of its states: not run (simulate=False)")
         return _finish(report, raise_on_problem)
     times = dt * np.arange(n_times)
     holder: dict[str, np.ndarray] = {}
@@ -174,6 +228,17 @@ def check_scene(scene: Scene, raise_on_problem: bool = True, n_trajectories: int
         _run(report, "fields of full-order states (shapes, broadcasting)", fields)
     else:
         report.skipped.append("fields(): not defined; datasets must bring their own fields")
+    if caps["field_gradients"] and "field_gradients" in needed:
+        def gradients() -> str | None:
+            G = np.asarray(scene.field_gradients(states, points))
+            want = (*states.shape[:2], len(points), scene.field_dim, scene.body_dim)
+            if G.shape != want:
+                return (f"field_gradients(states (n, T, S), points (N, dim_B)) must return ∇_X q of shape "
+                        f"(n, T, N, A, dim_B) = {want}, got {G.shape}")
+            if not np.isfinite(G).all():
+                return "field_gradients returned non-finite values"
+            return None
+        _run(report, "field gradients ∇_X q (shapes, finite)", gradients)
     if not caps["true_energies"]:
         report.skipped.append("true_energy_parts(): not defined; no potential or conservation check")
         return _finish(report, raise_on_problem)
@@ -186,15 +251,18 @@ def check_scene(scene: Scene, raise_on_problem: bool = True, n_trajectories: int
 
     if not _run(report, "reference energies (shapes)", energies):
         return _finish(report, raise_on_problem)
-    if caps["fields"]:
+    gradient_potential = potential_ok and bool(scene.potential(rule).needs_gradient)
+    if caps["fields"] and gradient_potential and not caps["field_gradients"]:
+        report.skipped.append("potential V against the scene's own potential energy: its V needs ∇_X q, and the "
+                              "scene defines no field_gradients() to compare with (only the gradient loss, "
+                              "model.gradient_weight > 0, needs it)")
+    elif caps["fields"] and potential_ok:  # (a potential that failed its own check is reported once)
         def against() -> str | None:
             V = scene.potential(rule)
             q, _ = scene.fields(states[:, :: max(1, n_times // 4)], points)
             flat = torch.as_tensor(np.asarray(q).reshape(-1, len(points), scene.field_dim), dtype=rule.weights.dtype)
             G = None
             if V.needs_gradient:
-                if not caps["field_gradients"]:
-                    return "its V needs ∇_X q, but the scene defines no field_gradients() to compare with: define it"
                 G = torch.as_tensor(np.asarray(scene.field_gradients(states[:, :: max(1, n_times // 4)], points))
                                     .reshape(-1, len(points), scene.field_dim, scene.body_dim), dtype=flat.dtype)
             pulled = V(flat, G).double().numpy()

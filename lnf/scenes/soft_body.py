@@ -36,7 +36,9 @@ class SoftBody(ElasticCantilever):
     """A hyperelastic soft body on a mesh (units: m, kg, s, Pa).
 
     Args:
-        mesh_file: a mesh file that meshio reads; null: the box below.
+        mesh_file: a mesh file that meshio reads; null: the box below. Its body is all its cells of the highest
+            dimension, all tetrahedra or all hexahedra (triangles or quadrilaterals in 2-D); a mesh with other
+            cells there (wedges, pyramids, quadratic cells) or a mix of types is refused, never used in part.
         box: the box's lengths (L₁, …, L_d) [m]; cells: its cells per axis; cell_kind: ``hex`` or ``tet``
             (``quad`` or ``tri`` in 2-D).
         clamp: the name of a point set or cell set of the mesh file whose nodes are clamped; null: the nodes at
@@ -48,6 +50,9 @@ class SoftBody(ElasticCantilever):
         deflection_range, tip_speed_range: of the release, as the cantilever's (deflections along X_d).
         load_amplitude_range, load_frequency_range, load_direction, load_power: the cable's pull, A [N/m³], f [Hz],
             ê (d numbers) and p.
+        mesh_units: the length unit of mesh_file's coordinates (``m``, ``cm``, ``mm``, …
+            :data:`lnf.fem.body.MESH_UNITS`), scaled to metres; null: metres, unless the mesh's extent is implausible as metres (then an error asks
+            for the unit). The mesh, its extent and unit are logged when it is read.
     """
 
     name = "soft_body"
@@ -60,12 +65,13 @@ class SoftBody(ElasticCantilever):
                  release: str = "modal", deflection_range: Sequence[float] = (-0.05, 0.05),
                  tip_speed_range: Sequence[float] = (-0.2, 0.2), load_amplitude_range: Sequence[float] = (0.0, 0.0),
                  load_frequency_range: Sequence[float] = (0.5, 1.0), load_direction: Optional[Sequence[float]] = None,
-                 load_power: float = 4.0) -> None:
+                 load_power: float = 4.0, mesh_units: Optional[str] = None) -> None:
         if not (np.isfinite(load_power) and load_power >= 0):
             raise ValueError(f"scene.load_power must be a finite number ≥ 0, got {load_power!r}")
         self._set_physics(density, young, poisson, gravity, damping, cfl_fraction, material, integrator, release,
                           deflection_range, tip_speed_range, load_amplitude_range, load_frequency_range)
         self.mesh_file = str(mesh_file) if mesh_file else None
+        self.mesh_units = None if mesh_units is None else str(mesh_units)
         self.box, self.cells, self.cell_kind = [float(v) for v in box], [int(n) for n in cells], str(cell_kind)
         self.clamp = clamp
         self.quadrature_order = None if quadrature_order is None else int(quadrature_order)
@@ -92,7 +98,10 @@ class SoftBody(ElasticCantilever):
 
     def _mesh(self) -> tuple[Any, dict[str, np.ndarray]]:
         if self.mesh_file is not None:
-            return read_mesh(Path(self.mesh_file).expanduser())
+            path = Path(self.mesh_file).expanduser()
+            if not path.is_file():
+                raise ValueError(f"scene.mesh_file={self.mesh_file!r}: no such file (a mesh file that meshio reads)")
+            return read_mesh(path, self.mesh_units, key="scene.mesh_units")
         if len(self.box) != len(self.cells) or len(self.box) not in (2, 3):
             raise ValueError(f"scene.box and scene.cells must both have 2 or 3 entries, got {self.box}, {self.cells}")
         if any(L <= 0 for L in self.box) or any(n < 1 for n in self.cells):
@@ -104,7 +113,9 @@ class SoftBody(ElasticCantilever):
             raise ValueError(f"scene.cell_kind: {err}") from err
 
     def params(self) -> dict[str, Any]:
-        return dict(mesh_file=self.mesh_file, box=self.box, cells=self.cells, cell_kind=self.cell_kind,
+        # the unit a mesh file was read in (null read it as metres); none for the box, whose spec predates it
+        units = {} if self.mesh_file is None else dict(mesh_units=self.mesh_units or "m")
+        return dict(mesh_file=self.mesh_file, **units, box=self.box, cells=self.cells, cell_kind=self.cell_kind,
                     clamp=self.clamp, quadrature_order=self.quadrature_order, density=self.rho, young=self.young,
                     poisson=self.poisson, material=self.material_name, gravity=self.gravity, damping=self.damping,
                     time_step=self.time_step, cfl_fraction=self.cfl_fraction, integrator=self.integrator,

@@ -18,6 +18,7 @@ import torch
 from lightning.fabric.plugins.io.torch_io import TorchCheckpointIO
 
 from lnf.tempfiles import writer_is_gone
+from lnf.trust import read_weights_only
 
 log = logging.getLogger("lnf.train")
 
@@ -62,7 +63,7 @@ class AtomicCheckpointIO(TorchCheckpointIO):
 def read_checkpoint(path: Path) -> tuple[Optional[dict[str, Any]], str]:
     """(the checkpoint dict, "") if `path` loads as a Lightning checkpoint, else (None, why not)."""
     try:
-        ckpt = torch.load(path, map_location="cpu", weights_only=False)
+        ckpt = read_weights_only(path)  # never unpickles objects: a checkpoint runs no code it carries
     except Exception as err:  # noqa: BLE001 - any unpickling failure: truncated, zeroed, not a checkpoint
         return None, f"does not load ({type(err).__name__}: {err})"
     if not isinstance(ckpt, dict) or "state_dict" not in ckpt or "epoch" not in ckpt:

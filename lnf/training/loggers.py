@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import os
+import sys
 from pathlib import Path
 from typing import Any, Optional
 
@@ -66,3 +67,12 @@ class WandbLogger(LightningWandbLogger):
 
 def _is_wandb_settings(value: Any) -> bool:
     return type(value).__name__ == "Settings" and type(value).__module__.startswith("wandb")
+
+
+def finish_wandb_run() -> None:
+    """End this process's wandb run, if one is open: the next job of a Hydra multirun in the same process then
+    starts a run of its own (Lightning's WandbLogger otherwise reuses the open run, and every later job logged into
+    the first job's run)."""
+    wandb = sys.modules.get("wandb")
+    if wandb is not None and getattr(wandb, "run", None) is not None:
+        wandb.finish()

@@ -10,6 +10,7 @@ import torch
 from torch import Tensor
 
 from lnf.model import build_model
+from lnf.utils import check_numbers
 
 
 class LNFModule(pl.LightningModule):
@@ -34,6 +35,7 @@ class LNFModule(pl.LightningModule):
         self.optimizer_cfg = {"lr": 3e-4, "step_size_lr": 1e-2, "weight_decay": 0.0, "warmup_steps": 0,
                               "schedule": "cosine", "min_lr_ratio": 0.0, "energy_warmup_epochs": 0,
                               **(optimizer or {})}
+        check_numbers(self.optimizer_cfg, prefix="optimizer.")  # NaN, inf, lr ≤ 0, … named before any step
         self.restored_fit_metrics: dict[str, float] = {}
 
     def fit_metrics(self) -> dict[str, float]:
