@@ -38,8 +38,12 @@ disk fails cleanly before HDF5 writes (HDF5 can crash on a failed write). A reus
 every checksum, and every float value finite (read one trajectory at a time); a damaged file is
 regenerated (``on_mismatch="regenerate"``) or refused (``"error"``). A file at an explicitly chosen path
 is never overwritten with other settings when ``overwrite_other_settings=False`` (the DataModule's
-choice for an explicit ``data.path``). Every user-facing failure raises :class:`DatasetError` naming the
-file and the key.
+choice for an explicit ``data.path``). A file that is not recognisably an lnf dataset (:func:`not_lnf_dataset`) is
+never overwritten or deleted: refused at an explicit path, else kept as ``<name>.damaged-<time>`` before
+regeneration. The root attribute ``lnf_manifest`` (``{dataset path: its lnf_checksum}``, covered by
+``lnf_attributes_checksum``) lists every dataset written: one deleted, added, moved or swapped (the val and test
+groups) makes the file damaged. :func:`content_checksum` identifies what a file holds (a run refuses a file replaced
+while in use). Every user-facing failure raises :class:`DatasetError` naming the file and the key.
 """
 from __future__ import annotations
 
@@ -55,6 +59,7 @@ import multiprocessing
 import os
 import shutil
 import socket
+import time
 from dataclasses import asdict, dataclass, fields as dataclass_fields
 from glob import escape as glob_escape
 from pathlib import Path
@@ -74,6 +79,10 @@ CHECKSUM_ATTR = "lnf_checksum"
 CHECKSUM_ALGORITHM = "blake2b"
 ATTRIBUTES_CHECKSUM_ATTR = "lnf_attributes_checksum"  # root attribute: json {attribute: checksum} of ROOT_ATTRIBUTES
 ROOT_ATTRIBUTES = ("format_version", "lnf_scene", "lnf_generation", "scene_name")
+# root attribute: json {dataset key: its lnf_checksum} of every dataset written, so a dataset deleted, moved or
+# swapped with another (the val and test groups) after writing is found; covered by lnf_attributes_checksum
+MANIFEST_ATTR = "lnf_manifest"
+DAMAGED_SUFFIX = ".damaged-"  # a file not recognisably lnf's, kept aside before regeneration: <name>.damaged-<time>
 FIELD_KEYS = ("fields", "velocities", "coarse_fields", "coarse_velocities")
 SPLIT_KEYS = ("states", "energy", "masks") + FIELD_KEYS
 OPTIONAL_SPLIT_KEYS = ("kinetic", "potential", "controls")  # only in files written from arrays
@@ -498,7 +507,7 @@ def _verify_attributes(f: h5py.File, path: Path) -> None:
     except ValueError as exc:
         raise _Damaged(f"{path}: root attribute {ATTRIBUTES_CHECKSUM_ATTR} is not a JSON object of checksums "
                        f"({exc}); the file is corrupt") from exc
-    for name in ROOT_ATTRIBUTES:
+    for name in ROOT_ATTRIBUTES + tuple(n for n in (MANIFEST_ATTR,) if n in stored):
         digest = _attribute_digest(_attribute_value(f, name))
         if str(stored.get(name)) != digest:
             raise _Damaged(f"{path}: root attribute {name} does not match its checksum in {ATTRIBUTES_CHECKSUM_ATTR} "
@@ -536,9 +545,85 @@ def _check_generation(f: h5py.File, path: Path, generation: Mapping[str, Any]) -
         if int(round(fraction * n_points)) != observed:
             problems.append(f"observed_fraction = {json.dumps(fraction)} (round({fraction}·{n_points}) points), but "
                             f"each trajectory observes {observed}")
+    weights = generation.get("weights")  # what the file was written with must still be there, and nothing else
+    if isinstance(weights, bool) and weights != ("grids/weights" in f):
+        problems.append(f"weights = {json.dumps(weights)}, but the file "
+                        f"{'lacks' if weights else 'holds'} /grids/weights")
+    energies = generation.get("energies")
+    if energies in ("given", "scene", "none"):
+        for key in (f"{s}/{k}" for s in SPLITS for k in ("kinetic", "potential", "energy")):
+            if (key in f) != (energies != "none"):
+                problems.append(f"energies = {json.dumps(energies)}, but the file "
+                                f"{'holds' if key in f else 'lacks'} /{key}")
+                break
     if problems:
         raise _Damaged(f"{path}: root attribute lnf_generation disagrees with the data: {'; '.join(problems)} "
-                       f"(it was changed after the file was written)")
+                       f"(the attribute or the datasets were changed after the file was written)")
+
+
+def _check_manifest(f: h5py.File, path: Path, splits: tuple[str, ...] = SPLITS) -> None:
+    """The datasets of the shared part and of `splits` are those the file was written with (``lnf_manifest``): each
+    one listed is present and carries the checksum listed for its own path (checked against its values by
+    :func:`_verify`, so a dataset or group moved, swapped or replaced is found), and none is added. A file written
+    before the manifest existed is not checked. Any difference → _Damaged naming the file and the dataset."""
+    raw = f.attrs.get(MANIFEST_ATTR)
+    if raw is None:
+        return
+    try:
+        manifest = json.loads(raw.decode() if isinstance(raw, bytes) else str(raw))
+        if not isinstance(manifest, dict):
+            raise ValueError("not a JSON object")
+    except ValueError as exc:
+        raise _Damaged(f"{path}: root attribute {MANIFEST_ATTR} is not a JSON object of checksums ({exc}); the file "
+                       f"is corrupt") from exc
+
+    def wanted(key: str) -> bool:
+        head = key.split("/")[0]
+        return head not in SPLITS or head in splits
+
+    for key in sorted(k for k in manifest if wanted(k)):
+        if key not in f or not isinstance(f[key], h5py.Dataset):
+            raise _Damaged(f"{path}: dataset /{key} is missing, but the file was written with it (its {MANIFEST_ATTR} "
+                           f"lists it): it was deleted or moved after the file was written")
+        stored = f[key].attrs.get(CHECKSUM_ATTR)
+        stored = str(stored.decode() if isinstance(stored, bytes) else stored)
+        if stored != str(manifest[key]):
+            raise _Damaged(f"{path}: dataset /{key} holds other values than were written there (its {CHECKSUM_ATTR} "
+                           f"{stored[:24]}… is not the {str(manifest[key])[:24]}… that {MANIFEST_ATTR} records for "
+                           f"/{key}): datasets or groups were moved, swapped or replaced after the file was written")
+    for key in dataset_keys(splits, f):
+        if key not in manifest:
+            raise _Damaged(f"{path}: dataset /{key} was not written with the file (its {MANIFEST_ATTR} does not list "
+                           f"it): it was added after the file was written")
+
+
+def _seal(f: h5py.File) -> None:
+    """Record the manifest of a just-written lnf file (every dataset's checksum by its path) and cover it by the
+    attribute checksums (:func:`_verify_attributes`)."""
+    manifest = {}
+    for key in dataset_keys(SPLITS, f):
+        value = f[key].attrs.get(CHECKSUM_ATTR)
+        manifest[key] = str(value.decode() if isinstance(value, bytes) else value)
+    f.attrs[MANIFEST_ATTR] = json.dumps(manifest, sort_keys=True)
+    raw = f.attrs[ATTRIBUTES_CHECKSUM_ATTR]
+    digests = json.loads(raw.decode() if isinstance(raw, bytes) else str(raw))
+    digests[MANIFEST_ATTR] = _attribute_digest(_attribute_value(f, MANIFEST_ATTR))
+    f.attrs[ATTRIBUTES_CHECKSUM_ATTR] = json.dumps(digests)
+
+
+def content_checksum(path: str | os.PathLike) -> str:
+    """A checksum of what the lnf dataset at `path` holds: of its root attributes and of every dataset's checksum,
+    keyed by the dataset's path (its values' checksums, not its values: cheap, and exact for a verified file). Two
+    files with the same settings but other values, or a file rewritten with other values, differ. DatasetError if
+    the file cannot be read."""
+    path = Path(path)
+    with _open(path) as f:
+        record = {"attributes": {name: _attribute_value(f, name) for name in ROOT_ATTRIBUTES}, "datasets": {}}
+        for key in dataset_keys(SPLITS, f):
+            value = f[key].attrs.get(CHECKSUM_ATTR) if key in f else None
+            record["datasets"][key] = str(value.decode() if isinstance(value, bytes) else value)
+    text = json.dumps(record, sort_keys=True, separators=(",", ":"), default=str)
+    return f"{CHECKSUM_ALGORITHM}:{hashlib.blake2b(text.encode(), digest_size=16).hexdigest()}"
 
 
 def _points_hint(f: h5py.File) -> str:
@@ -952,6 +1037,8 @@ def atomic_h5(path: Path, needed: int) -> Iterator[h5py.File]:
         _preallocate(tmp, needed)
         f = h5py.File(tmp, "r+")
         yield f
+        if ATTRIBUTES_CHECKSUM_ATTR in f.attrs:  # an lnf dataset (write_root_attributes): record what it holds
+            _seal(f)
         f.close()  # flushes: may fail too
         f = None
         os.replace(tmp, path)
@@ -983,13 +1070,14 @@ def _file_problem(path: Path, expected: dict[str, Any]) -> Optional[tuple[str, s
             _verify_attributes(f, path)
             _check_structure(f, path, SPLITS)
             _verify_all(f, path, SPLITS)
+            _check_manifest(f, path, SPLITS)
     except _Damaged as exc:
         return "corrupt", str(exc)
     return None
 
 
 def ensure_dataset(scene: Any, cfg: DatasetConfig, path: str | os.PathLike, on_mismatch: str = "regenerate",
-                   overwrite_other_settings: bool = True) -> Path:
+                   overwrite_other_settings: bool = True, writable: bool = True) -> Path:
     """Return `path`, generating it if absent, corrupt, of another format version or made with other settings.
 
     A file is reused only if its settings match and every dataset matches its checksum and is finite.
@@ -1000,21 +1088,37 @@ def ensure_dataset(scene: Any, cfg: DatasetConfig, path: str | os.PathLike, on_m
     on_mismatch; corrupt and outdated files are still regenerated under "regenerate".
     A file written from arrays (:func:`lnf.trajectories.write_dataset`) is only verified (:func:`verify_dataset`),
     never regenerated: lnf has no simulator for it.
+    A file that is not recognisably an lnf dataset (:func:`not_lnf_dataset`: not HDF5, truncated, or HDF5 without
+    lnf's root attributes) is never overwritten or deleted: with overwrite_other_settings=False (an explicit path)
+    it raises DatasetError naming the file, and nothing is changed; otherwise it is regenerated under "regenerate"
+    after the file is kept as ``<name>.damaged-<time>`` beside it (a warning names both).
+    writable: False → nothing is ever written at `path` (lnf.evaluate, for a checkpoint's data path outside the data
+    folder): a missing or unusable file raises DatasetError naming it and the problem.
     """
     if on_mismatch not in ("regenerate", "error"):
         raise DatasetError(f"data.on_mismatch must be 'regenerate' or 'error', got {on_mismatch!r}")
     path = Path(path)
-    if not path.exists():
+    if not path.exists() and not path.is_symlink():
+        if not writable:
+            raise DatasetError(f"{path}: dataset file not found (this caller does not write there)")
         return generate_dataset(scene, cfg, path)
+    if not path.is_file():
+        raise DatasetError(f"{path}: not a regular file (a directory, or a link to nothing); expected an lnf dataset "
+                           f"(HDF5) or no file there: point data.path at a file")
     if dataset_source(path) == SOURCE_ARRAYS:  # a user's trajectories: verified, never regenerated or overwritten
         return verify_dataset(path, scene)
-    problem = _file_problem(path, generation_attributes(scene, cfg))
+    foreign = not_lnf_dataset(path)
+    problem = ("foreign", foreign) if foreign else _file_problem(path, generation_attributes(scene, cfg))
     if problem is None:
         log.info("reusing dataset %s", path)
         return path
     kind, detail = problem
+    if kind == "foreign" and not (overwrite_other_settings and writable):
+        raise DatasetError(_foreign_message(path, detail))
     if kind == "mismatch" and not overwrite_other_settings:
         raise DatasetError(_kept_message(path, detail))
+    if not writable:
+        raise DatasetError(f"{detail}" if kind == "corrupt" else f"{path}: {detail}")
     if on_mismatch == "error":
         if kind == "mismatch":
             raise DatasetError(_mismatch_message(path, [detail], ERROR_HINT))
@@ -1022,9 +1126,65 @@ def ensure_dataset(scene: Any, cfg: DatasetConfig, path: str | os.PathLike, on_m
             raise DatasetError(f"{path}: dataset has another file format ({detail}); {ERROR_HINT}")
         raise DatasetError(f"{detail}; {ERROR_HINT}")
     reason = {"mismatch": f"settings differ ({detail})", "outdated": f"it has another file format ({detail})",
-              "corrupt": detail}[kind]
-    log.warning("regenerating dataset %s: %s", path, reason)
-    return generate_dataset(scene, cfg, path)
+              "corrupt": detail, "foreign": detail}[kind]
+    if kind != "foreign":  # lnf's own file, which its recorded settings regenerate: replaced
+        log.warning("regenerating dataset %s: %s", path, reason)
+        return generate_dataset(scene, cfg, path)
+    with _kept_aside(path) as aside:  # not recognisably lnf's: kept, under another name, once the new file is written
+        log.warning("regenerating dataset %s: %s; the file found there is kept as %s (it is not recognisably an lnf "
+                    "dataset, so it is not overwritten)", path, reason, aside)
+        return generate_dataset(scene, cfg, path)
+
+
+def not_lnf_dataset(path: str | os.PathLike) -> Optional[str]:
+    """None when the file at `path` is recognisably an lnf dataset (an HDF5 file with lnf's root attributes
+    ``lnf_generation``, a JSON object, and ``lnf_scene``), else why not (the message names the file): such a file may
+    be anything of the user's, and is never overwritten or deleted by lnf."""
+    path = Path(path)
+    try:
+        with h5py.File(path, "r") as f:
+            raw = f.attrs.get("lnf_generation")
+            if raw is None or "lnf_scene" not in f.attrs:
+                return (f"{path}: an HDF5 file that lnf did not write (it lacks lnf's root attributes lnf_generation "
+                        f"and lnf_scene)")
+            try:
+                generation = json.loads(raw.decode() if isinstance(raw, bytes) else str(raw))
+            except ValueError:
+                generation = None
+            if not isinstance(generation, dict):
+                return f"{path}: its root attribute lnf_generation is not a JSON object, as lnf writes it"
+    except OSError as exc:
+        return f"{path}: file is corrupt or not an HDF5 file ({exc})"
+    return None
+
+
+def _foreign_message(path: Path, detail: str) -> str:
+    """A file that is not recognisably an lnf dataset at a path lnf must not replace it at: nothing is changed."""
+    return (f"{detail}. It is not recognisably an lnf dataset, and lnf does not overwrite, move or delete such a file "
+            f"at an explicitly given path (data.path, or the data path a checkpoint records): nothing was changed. "
+            f"Point data.path at another file (or set data.path=null for lnf's own file under data.data_dir); if it "
+            f"is a damaged lnf dataset, move it away or delete it yourself and lnf generates it again")
+
+
+@contextlib.contextmanager
+def _kept_aside(path: Path) -> Iterator[Path]:
+    """A second name ``<name>.damaged-<time>`` for the file at `path` (a hard link; a copy where the file system has
+    none) while the block regenerates `path`: kept when the block succeeds, removed when it fails (the file then
+    stays at `path` as it was). Nothing is lost either way."""
+    stamp = time.strftime("%Y%m%d-%H%M%S")
+    aside, k = path.with_name(f"{path.name}{DAMAGED_SUFFIX}{stamp}"), 1
+    while aside.exists() or aside.is_symlink():
+        aside, k = path.with_name(f"{path.name}{DAMAGED_SUFFIX}{stamp}-{k}"), k + 1
+    try:
+        os.link(path, aside)
+    except OSError:
+        shutil.copy2(path, aside)
+    try:
+        yield aside
+    except BaseException:
+        if path.exists():  # the old file is still in place: the second name is not needed
+            aside.unlink(missing_ok=True)
+        raise
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -1142,6 +1302,7 @@ def load_split(path: str | os.PathLike, split: str, scene: Any = None,
                 ("controls", f"{split}/controls"), ("weights", "grids/weights")) if key in f})
             if "energy" not in data:  # a file written from arrays without energies
                 data["energy"] = None
+            _check_manifest(f, path, (split,))  # the split's datasets are the ones written there, none deleted
             if arrays:  # points stored in float64: refused where float32 (the model's) would merge them
                 check_points(f"{path}: /grids/fine", data["fine_points"], {
                     f"/{split}/fields": data["fields"], f"/{split}/velocities": data["velocities"]},
@@ -1222,6 +1383,7 @@ def verify_dataset(path: str | os.PathLike, scene: Any = None) -> Path:
             if _is_arrays_file(f):
                 _check_generation(f, path, attrs["generation"])
             _verify_all(f, path, SPLITS)
+            _check_manifest(f, path, SPLITS)
             if _is_arrays_file(f):
                 check_points(f"{path}: /grids/fine", f["grids/fine"][...], {
                     f"/{s}/{key}": f[f"{s}/{key}"] for s in SPLITS for key in ("fields", "velocities")},

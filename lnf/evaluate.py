@@ -19,14 +19,16 @@ from omegaconf import DictConfig, OmegaConf
 
 from lnf.allocator import keep_freed_memory
 from lnf.config_keys import check_known_keys
-from lnf.dataset import (GROUND_TRUTH_FOLDER, SOURCE_ARRAYS, SPLITS, DatasetConfig, ensure_dataset, load_split,
-                         simulated_ground_truth, stored_generation, verify_dataset)
+from lnf.dataset import (GROUND_TRUTH_FOLDER, SOURCE_ARRAYS, SPLITS, DatasetConfig, DatasetError, content_checksum,
+                         ensure_dataset, load_split, simulated_ground_truth, stored_generation, verify_dataset)
 from lnf.decoding_table import check_decoding
 from lnf.evaluation import (EvaluationCost, evaluate_rollouts, evaluation_cost, long_horizon_energy, quadrature_size,
                             size_text)
 from lnf.model import build, load
 from lnf.quadrature import grid_shape_of, midpoint_grid
-from lnf.run_lock import run_folder_lock
+from lnf.run_lock import EVALUATION_RESULTS, run_folder_lock, set_aside
+from lnf.trajectories import TIME_TOLERANCE
+from lnf.trust import trusted_modules
 from lnf.training.callbacks import save_evaluation_figures, stored_reference, write_json_atomic
 from lnf.training.console import quiet_console
 from lnf.utils import check_numbers, print_summary, run_metadata
@@ -136,17 +138,51 @@ def _integer(cfg: DictConfig, key: str, minimum: int, expected: str, null: str =
                      f"got {value!r}")
 
 
+def rollout_frames(cfg: DictConfig, dt: float, horizon: float) -> int:
+    """The frames of a rollout over `horizon` [s] sampled every `dt` [s] (t = 0, dt, …, horizon − dt; either may be
+    the data's where `cfg` leaves it null): horizon/dt, which must be a whole number (to 1e-9, relative; to
+    :data:`lnf.trajectories.TIME_TOLERANCE` where one is the data's) and ≥ 2, or
+    a ValueError names both and the horizons that work. An explicit train_horizon beyond the horizon is refused
+    too: nothing would come after it."""
+    def shown(key: str, value: float) -> str:
+        return f"{key}={_shown(cfg.get(key))}" + (f" (the data’s: {value:g} s)" if cfg.get(key) is None else " [s]")
+
+    span = f"{shown('horizon', horizon)} at {shown('dt', dt)}"
+    ratio = horizon / dt
+    frames = int(round(ratio))
+    # a data's times are uniform to TIME_TOLERANCE (a user's arrays); two settings, to rounding
+    tol = 1e-9 if cfg.get("horizon") is not None and cfg.get("dt") is not None else TIME_TOLERANCE
+    if abs(ratio - frames) > tol * max(frames, 1):
+        works = [f"horizon={k * dt:.12g}" for k in (math.floor(ratio), math.ceil(ratio)) if k >= 2]
+        raise ValueError(f"{span} is {ratio:.6g} steps of dt, not a whole number: the rollout samples t = 0, dt, …, "
+                         f"horizon − dt and would cover {frames * dt:g} s instead of {horizon:g} s; set "
+                         f"{' or '.join(works)} (a whole number of dt), or a dt that divides the horizon")
+    if frames < 2:
+        raise ValueError(f"{span} is {frames} frame{'' if frames == 1 else 's'}: a rollout needs at least 2 frames "
+                         f"(t = 0 and dt), i.e. horizon ≥ 2·dt = {2 * dt:g} s")
+    train_horizon = cfg.get("train_horizon")
+    if train_horizon is not None and train_horizon > horizon * (1 + 1e-9):
+        raise ValueError(f"train_horizon={_shown(train_horizon)} [s] (where extrapolation starts) is beyond the "
+                         f"evaluated {span}: no frame would come after it; set train_horizon ≤ {horizon:g}, or null "
+                         f"(the data's training horizon)")
+    return frames
+
+
 def check_settings(cfg: DictConfig) -> None:
     """Refuse keys lnf.evaluate does not use and settings it cannot run, before anything is loaded or rolled out."""
     check_known_keys(cfg, "evaluate", "lnf.evaluate")
     if OmegaConf.is_missing(cfg, "ckpt_path") or cfg.get("ckpt_path") in (None, ""):
         raise ValueError("ckpt_path is required: the checkpoint to evaluate, e.g. "
                          "ckpt_path=outputs/pendulum/runs/<date>/checkpoints/last.ckpt")
+    trusted_modules(trust_setting(cfg))  # a bad module name is refused here, naming it
     if cfg.get("split") not in SPLITS:
         raise ValueError(f"split must be one of {', '.join(SPLITS)}, got {cfg.get('split')!r}")
     _number(cfg, "dt", "the sample spacing of the evaluation", True, "the data's")
     _number(cfg, "horizon", "how long to roll out", True, "the data's horizon")
-    _number(cfg, "train_horizon", "where extrapolation starts", False, "the data's training horizon")
+    _number(cfg, "train_horizon", "where extrapolation starts; 0 leaves no time before it", True,
+            "the data's training horizon")
+    if cfg.get("dt") is not None and cfg.get("horizon") is not None:
+        rollout_frames(cfg, float(cfg.dt), float(cfg.horizon))  # a whole number ≥ 2 of dt, before anything is loaded
     _integer(cfg, "max_trajectories", 1, "how many trajectories of the split to evaluate", "all of them")
     _integer(cfg, "long_steps", 0, "steps of the long-horizon energy check; 0 skips it")
     _integer(cfg, "long_trajectories", 1, "trajectories of the long-horizon energy check")
@@ -254,7 +290,7 @@ def planned_cost(cfg: DictConfig, model: Any, data: dict[str, Any], split: Any =
     dt = float(cfg.dt) if cfg.get("dt") is not None else data_dt
     horizon = float(cfg.horizon) if cfg.get("horizon") is not None else \
         (data_frames * data_dt if data_frames and data_dt else None)
-    frames = int(round(horizon / dt)) if dt and horizon else (data_frames or 1)
+    frames = rollout_frames(cfg, dt, horizon) if dt and horizon else (data_frames or 1)
     kind = OmegaConf.select(cfg, "grid.kind", default="stored")
     if kind == "uniform":
         points = int(cfg.grid.resolution) ** dim
@@ -338,25 +374,66 @@ def evaluate(cfg: DictConfig) -> dict[str, float]:
         return _evaluate(cfg)
 
 
-RESULT_NAMES = ("metrics.json", "run.json", "figures")  # what an evaluation writes in its output folder
+def trust_setting(cfg: DictConfig) -> list[str]:
+    """``trust=`` as a list of module names: ``trust=mypkg`` (one name) or ``trust=[mypkg, other]``."""
+    value = cfg.get("trust")
+    if value is None or isinstance(value, str):
+        return [value] if value else []
+    if OmegaConf.is_list(value):
+        return [str(v) for v in value]
+    raise ValueError(f"trust must be a module name or a list of them (trust=[mypkg]), got {value!r}")
 
 
 def set_aside_earlier_results(output_dir: Path) -> Optional[Path]:
     """Move an earlier run's metrics.json, run.json and figures/ in `output_dir` to ``previous/<time>/`` (nothing
     is deleted), so that a run killed before its end never leaves its files beside another command's."""
-    found = [output_dir / name for name in RESULT_NAMES if (output_dir / name).exists()]
-    if not found:
-        return None
-    stamp = time.strftime("%Y-%m-%d_%H-%M-%S")
-    dest, k = output_dir / "previous" / stamp, 1
-    while dest.exists():
-        dest, k = output_dir / "previous" / f"{stamp}_{k}", k + 1
-    dest.mkdir(parents=True)
-    for item in found:
-        item.replace(dest / item.name)
-    log.info("moved the results of an earlier run in %s (%s) to %s", output_dir,
-             ", ".join(p.name for p in found), dest)
-    return dest
+    return set_aside(output_dir, EVALUATION_RESULTS)
+
+
+def in_folder(path: Path, folder: Path) -> bool:
+    """Whether `path` (links resolved) lies inside `folder`."""
+    try:
+        return Path(path).resolve().is_relative_to(Path(folder).resolve())
+    except OSError:
+        return False
+
+
+def evaluation_data(scene: Any, dcfg: DatasetConfig, path: Path, data_dir: Path, on_mismatch: str,
+                    explicit: bool) -> Path:
+    """The generated dataset of a checkpoint's data record, ready to evaluate; returns its path.
+
+    Inside the data folder (``paths.data_dir``: $LNF_DATA_DIR, else $LNF_ROOT/data) `path` is ensured as training
+    does (generated, or regenerated, there). Outside it, nothing is written to `path` (a checkpoint, which may come
+    from anywhere, names it): it is used when it holds an intact lnf dataset of the recorded settings; else (missing,
+    damaged, other settings, or not an lnf dataset at all) the dataset of those settings is generated — or reused —
+    at lnf's own file for them in the data folder, with a warning naming both files."""
+    if in_folder(path, data_dir):
+        ensure_dataset(scene, dcfg, path, on_mismatch=on_mismatch, overwrite_other_settings=not explicit)
+        return path
+    try:
+        return ensure_dataset(scene, dcfg, path, on_mismatch="error", overwrite_other_settings=False, writable=False)
+    except DatasetError as err:
+        from lnf.training.datamodule import default_path
+
+        own = default_path(data_dir, scene, dcfg)
+        log.warning("the checkpoint's data file is not used (%s). It lies outside the data folder %s, and "
+                    "lnf.evaluate writes only inside it (paths.data_dir, $LNF_DATA_DIR): the test trajectories of the "
+                    "checkpoint's data settings are taken from %s there instead (generated if not there yet)",
+                    err, data_dir, own)
+        ensure_dataset(scene, dcfg, own, on_mismatch=on_mismatch)
+        return own
+
+
+def warn_if_changed(path: Path, trained: Optional[str]) -> None:
+    """A warning naming `path` when its content checksum differs from `trained`, the one recorded when the
+    checkpoint was trained on it (nothing when the checkpoint records none)."""
+    if not trained:
+        return
+    now = content_checksum(path)
+    if now != trained:
+        log.warning("%s changed since the checkpoint was trained on it: its content checksum was %s then, it is %s "
+                    "now (the file was replaced or rewritten with other values); the metrics are those of the file as "
+                    "it is now", path, trained, now)
 
 
 def _evaluate(cfg: DictConfig) -> dict[str, float]:
@@ -366,7 +443,7 @@ def _evaluate(cfg: DictConfig) -> dict[str, float]:
     if cfg.get("threads"):
         torch.set_num_threads(int(cfg.threads))
     output_dir = Path(cfg.paths.output_dir)
-    model = load(cfg.ckpt_path, trust=list(cfg.get("trust") or []))  # a checkpoint's own classes run only if trusted
+    model = load(cfg.ckpt_path, trust=trust_setting(cfg))  # a checkpoint's own classes run only if trusted
     scene = model.scene
     choose_dynamics(model, cfg.get("dynamics"), cfg.ckpt_path)
     data = dict(model.checkpoint.get("data") or {})
@@ -376,6 +453,7 @@ def _evaluate(cfg: DictConfig) -> dict[str, float]:
     path = Path(data.pop("path"))
     on_mismatch = data.pop("on_mismatch", "regenerate")
     explicit = bool(data.pop("explicit_path", False))  # a shared file of another run's settings is not overwritten
+    trained_checksum = data.pop("checksum", None) or model.checkpoint.get("data_checksum")
     if data.get("source") == SOURCE_ARRAYS:  # a user's trajectories: verified, never regenerated
         dcfg = None
         verify_dataset(path, scene)
@@ -386,18 +464,26 @@ def _evaluate(cfg: DictConfig) -> dict[str, float]:
                         path, "; ".join(f"{k}: trained on {then.get(k)!r}, now {now.get(k)!r}" for k in changed))
     else:
         dcfg = DatasetConfig.from_mapping(data)
-        ensure_dataset(scene, dcfg, path, on_mismatch=on_mismatch, overwrite_other_settings=not explicit)
+        path = evaluation_data(scene, dcfg, path, Path(cfg.paths.data_dir), on_mismatch, explicit)
+    warn_if_changed(path, trained_checksum)
     split = load_split(path, cfg.split, scene=scene, cfg=dcfg)
     ensure_code_range(model, path, scene, dcfg)
 
     n = len(split) if cfg.max_trajectories is None else min(int(cfg.max_trajectories), len(split))
     dt = float(cfg.dt) if cfg.dt is not None else float(split.times[1] - split.times[0])
     horizon = float(cfg.horizon) if cfg.horizon is not None else float(split.times[-1] + split.times[1] - split.times[0])
-    if dt <= 0 or horizon <= dt:
-        raise ValueError(f"need dt > 0 and horizon > dt, got dt={dt}, horizon={horizon}")
+    # a whole number ≥ 2 of dt, train_horizon within the horizon (neither set: the data's own frames)
+    frames = rollout_frames(cfg, dt, horizon) if cfg.dt is not None or cfg.horizon is not None else len(split.times)
+    if cfg.dt is None and cfg.horizon is None and cfg.train_horizon is not None:
+        rollout_frames(cfg, dt, dt * frames)  # only train_horizon to check
     check_budget(cfg, *planned_cost(cfg, model, data, split))  # the data's own sizes, before simulating
     train_horizon = float(cfg.train_horizon) if cfg.train_horizon is not None else float(split.times[split.train_times])
-    times = dt * np.arange(int(round(horizon / dt)))
+    times = dt * np.arange(frames)
+    if not times[-1] >= train_horizon - 1e-9 * max(1.0, train_horizon):
+        (log.warning if cfg.train_horizon is not None else log.info)(
+            "train_horizon=%s (%s) comes after the last frame, t = %g s: the metrics have no extrapolation window",
+            _shown(cfg.train_horizon) if cfg.train_horizon is not None else f"{train_horizon:g}",
+            "as set" if cfg.train_horizon is not None else "the data's training horizon", times[-1])
     stored_times = len(times) == len(split.times) and np.allclose(times, split.times)
     has_states = split.states.shape[-1] > 0
     if (not stored_times or cfg.get("initial_states") is not None) and \

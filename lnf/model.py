@@ -144,8 +144,14 @@ def load(path: "str | Path", map_location: "str | torch.device" = "cpu",
     state = {k[len("model."):]: v for k, v in ckpt["state_dict"].items() if k.startswith("model.")}
     model.load_state_dict(state)
     model.eval()
+    # the content checksum of the data file it was trained on (lnf.dataset.content_checksum), where recorded: in the
+    # data settings, or in the state the SnapshotDataModule keeps in the checkpoint
+    data_state = ckpt.get("SnapshotDataModule")
+    data_checksum = (hp.get("data") or {}).get("checksum") if isinstance(hp.get("data"), dict) else None
+    if not data_checksum and isinstance(data_state, dict):
+        data_checksum = data_state.get("checksum")
     model.checkpoint = {"path": str(path), "data": hp.get("data"), "epoch": ckpt.get("epoch"),
-                        "global_step": ckpt.get("global_step")}
+                        "global_step": ckpt.get("global_step"), "data_checksum": data_checksum}
     return model
 
 

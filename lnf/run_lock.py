@@ -8,6 +8,7 @@ included), so a stale lock never blocks the next run. Only the first process of 
 """
 from __future__ import annotations
 
+import logging
 import os
 import socket
 import time
@@ -20,7 +21,11 @@ try:
 except ImportError:  # pragma: no cover - Windows: no advisory locks, runs are not serialised
     fcntl = None  # type: ignore[assignment]
 
+log = logging.getLogger("lnf.run_lock")
+
 LOCK_NAME = ".lnf-run.lock"
+EVALUATION_RESULTS = ("metrics.json", "run.json", "figures")  # what lnf.evaluate writes in its output folder
+_HELD: dict[Path, int] = {}  # folders this process holds, and how many nested holders: the lock is re-entrant
 
 
 class RunFolderBusyError(RuntimeError):
@@ -37,8 +42,15 @@ def run_folder_lock(folder: "str | Path", command: str) -> Iterator[None]:
     holds it. `command` (e.g. "python -m lnf.train") is recorded in the lock file for that message."""
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
-    if fcntl is None or not _rank_zero():
-        yield
+    key = folder.resolve()
+    if fcntl is None or not _rank_zero() or key in _HELD:  # held already by this process (its Hydra run, say)
+        _HELD[key] = _HELD.get(key, 0) + 1
+        try:
+            yield
+        finally:
+            _HELD[key] -= 1
+            if not _HELD[key]:
+                del _HELD[key]
         return
     handle = open(folder / LOCK_NAME, "a+")
     try:
@@ -56,6 +68,27 @@ def run_folder_lock(folder: "str | Path", command: str) -> Iterator[None]:
         handle.write(f"{command}, process {os.getpid()} on {socket.gethostname()}, since "
                      f"{time.strftime('%Y-%m-%d %H:%M:%S %Z')}\n")
         handle.flush()
-        yield
+        _HELD[key] = 1
+        try:
+            yield
+        finally:
+            del _HELD[key]
     finally:
         handle.close()  # closing the file releases the lock
+
+
+def set_aside(folder: Path, names: "tuple[str, ...]") -> "Path | None":
+    """Move the entries `names` of `folder` that exist (an earlier run's files) to ``previous/<time>/`` beside
+    them; nothing is deleted. Returns that folder, or None when there was nothing to move."""
+    found = [folder / name for name in names if (folder / name).exists()]
+    if not found:
+        return None
+    stamp = time.strftime("%Y-%m-%d_%H-%M-%S")
+    dest, k = folder / "previous" / stamp, 1
+    while dest.exists():
+        dest, k = folder / "previous" / f"{stamp}_{k}", k + 1
+    dest.mkdir(parents=True)
+    for item in found:
+        item.replace(dest / item.name)
+    log.info("moved the results of an earlier run in %s (%s) to %s", folder, ", ".join(p.name for p in found), dest)
+    return dest

@@ -17,7 +17,7 @@ import hydra
 import lightning.pytorch as pl
 import numpy as np
 import torch
-from lightning.pytorch.callbacks import EarlyStopping, ProgressBar, Timer
+from lightning.pytorch.callbacks import EarlyStopping, ModelCheckpoint, ProgressBar, Timer
 from omegaconf import DictConfig, OmegaConf
 
 from lnf.baselines.latent_mlp import latent_trajectories
@@ -28,7 +28,7 @@ from lnf.run_lock import run_folder_lock
 from lnf.scenes.base import Scene
 from lnf.scenes.check import SceneCheckError, check_scene
 from lnf.training.callbacks import RolloutEvaluationCallback, write_json_atomic
-from lnf.training.checkpoints import AtomicCheckpointIO, resume_checkpoint
+from lnf.training.checkpoints import AtomicCheckpointIO, confine_restored_state, resume_checkpoint
 from lnf.training.console import MetricsProgressBar, quiet_console
 from lnf.training.datamodule import SnapshotDataModule
 from lnf.training.loggers import finish_wandb_run
@@ -132,6 +132,36 @@ def check_run_scene(scene: Scene, needs: dict[str, str]) -> None:
     log.info("%s", str(report).splitlines()[0])
 
 
+RESUMED_GROUPS = ("model", "quadrature", "optimizer", "data")  # settings a resumed checkpoint must share
+UNCOMPARED_DATA = ("path", "on_mismatch", "explicit_path")  # where and how the file is found, not what it holds
+
+
+def check_resumed_settings(ckpt: dict[str, Any], path: Path, hparams: dict[str, Any], allow: bool) -> None:
+    """A checkpoint trained with other model, quadrature, optimizer or data settings is refused unless
+    ``resume_other_settings=true``: its weights (and its optimizer state, whose learning rate Lightning restores
+    over the configured one) would continue under settings they were not trained with, and the run's checkpoint
+    and metrics would record the new settings as if they had. A setting the checkpoint does not record (written
+    by an older lnf) is not compared."""
+    saved = ckpt.get("hyper_parameters") or {}
+    diffs = []
+    for group in RESUMED_GROUPS:
+        old, new = saved.get(group), hparams.get(group)
+        if not isinstance(old, dict) or not isinstance(new, dict):
+            continue
+        skip = UNCOMPARED_DATA if group == "data" else ()
+        diffs += [f"{group}.{k}: checkpoint {old[k]!r}, config {new.get(k)!r}" for k in sorted(old)
+                  if k not in skip and new.get(k) != old[k]]
+    if not diffs:
+        return
+    if not allow:
+        raise ValueError(f"{path} was trained with other settings ({'; '.join(diffs)}); resume it with its own "
+                         f"settings, start afresh in a new output dir (hydra.run.dir=...), or set "
+                         f"resume_other_settings=true to continue its weights under these (its optimizer state, "
+                         f"learning rate included, is restored as it was)")
+    log.warning("resuming %s under other settings (%s), as resume_other_settings=true asks; its optimizer state, "
+                "learning rate included, is restored as it was", path, "; ".join(diffs))
+
+
 def check_settings(cfg: DictConfig, module: LNFModule) -> None:
     """Settings that would otherwise fail only after training: build what the test phase needs now."""
     try:
@@ -233,11 +263,15 @@ def _train(cfg: DictConfig) -> dict[str, float]:
     ckpt_file, ckpt = resume_checkpoint(cfg.get("ckpt_path"), output_dir)
     if ckpt is not None:
         check_resumed_scene(ckpt, ckpt_file, module.hparams["scene"], bool(cfg.get("resume_other_scene", False)))
+        check_resumed_settings(ckpt, ckpt_file, dict(module.hparams), bool(cfg.get("resume_other_settings", False)))
         del ckpt
     datamodule.prepare_data()  # generates, or verifies every split of a stored file, before the first step
     datamodule.potential_targets = getattr(module.model, "energy_weight", 0.0) > 0  # items carry V for ℓ^E
     datamodule.gradient_targets = getattr(module.model, "gradient_weight", 0.0) > 0  # items carry ∇_X q for ℓ^G
     callbacks = [hydra.utils.instantiate(c) for c in (cfg.get("callbacks") or {}).values() if c is not None]
+    for callback in callbacks:  # a resumed checkpoint's state may name only files of the callback's own folder
+        if isinstance(callback, ModelCheckpoint):
+            confine_restored_state(callback)
     callbacks += progress_bar(cfg, callbacks)
     trainer: pl.Trainer = hydra.utils.instantiate(
         cfg.trainer, callbacks=[*callbacks, evaluation], plugins=[AtomicCheckpointIO()],

@@ -41,7 +41,19 @@ TIME_TOLERANCE = 1e-6  # relative spread of the time steps that still counts as 
 
 
 def _array(name: str, value: Any, ndim: Sequence[int], dtype: Any = np.float64) -> np.ndarray:
-    """`value` as a finite real array of one of the dimensions `ndim`, or a DatasetError naming `name`."""
+    """`value` as a finite real array of one of the dimensions `ndim`, or a DatasetError naming `name`. A masked
+    array (what netCDF readers return) with masked elements is refused: np.asarray would drop its mask and keep
+    the fill values (e.g. 1e20) as data."""
+    if np.ma.isMaskedArray(value):
+        masked = np.ma.getmaskarray(value)
+        if masked.any():
+            first = np.argwhere(masked)[0].tolist()
+            raise DatasetError(f"{name}: got a masked array with {int(masked.sum())} masked (missing) values of "
+                               f"{masked.size} (the first at index {first}); lnf would otherwise store their fill "
+                               f"values (e.g. {np.ma.default_fill_value(value)!r}) as data. Fill or drop the missing "
+                               f"values yourself (e.g. interpolate them, or leave out those points or trajectories) "
+                               f"and pass a plain array")
+        value = np.ma.getdata(value)
     kind = getattr(getattr(value, "dtype", None), "is_complex", None)  # a torch tensor's dtype says so itself
     if kind is True or (kind is None and np.iscomplexobj(value)):
         raise DatasetError(f"{name}: got a complex array (dtype {value.dtype if hasattr(value, 'dtype') else 'complex'}"
@@ -59,6 +71,53 @@ def _array(name: str, value: Any, ndim: Sequence[int], dtype: Any = np.float64) 
         raise DatasetError(f"{name}: {int((~np.isfinite(arr)).sum())} values are NaN or inf (the first at index "
                            f"{bad}); lnf trains only on finite data")
     return arr
+
+
+FLOAT32_TOLERANCE = 1e-4  # RMS change by float32 rounding, relative to the values' own spread, that is refused
+
+
+def _check_float32(name: str, given: Any, stored: np.ndarray) -> None:
+    """`stored` (n, T, N, A) float32, as the file keeps it, against `given`, the values passed (any precision): per
+    component, the RMS rounding change relative to the values' own standard deviation (over all trajectories,
+    times and points) must stay ≤ FLOAT32_TOLERANCE, else DatasetError naming `name`, the loss and the fix (a
+    large offset leaves float32 too few digits for the variation). Read one trajectory at a time; values already
+    in float32 (or coarser) lose nothing and are not read."""
+    given = np.ma.getdata(given) if np.ma.isMaskedArray(given) else given
+    src = np.asarray(given)
+    if src.dtype.kind == "f" and src.dtype.itemsize <= 4:
+        return
+    n, A = stored.shape[0], stored.shape[-1]
+
+    def rows(i: int) -> tuple[np.ndarray, np.ndarray]:
+        return np.asarray(src[i], dtype=np.float64).reshape(-1, A), stored[i].reshape(-1, A).astype(np.float64)
+
+    count, total = 0, np.zeros(A)
+    for i in range(n):
+        x, _ = rows(i)
+        count, total = count + x.shape[0], total + x.sum(axis=0)
+    mean = total / max(count, 1)
+    var, err2, err_max = np.zeros(A), np.zeros(A), np.zeros(A)
+    for i in range(n):  # a second pass: the spread about the mean, exact even under a large offset
+        x, y = rows(i)
+        var += ((x - mean) ** 2).sum(axis=0)
+        err2 += ((x - y) ** 2).sum(axis=0)
+        err_max = np.maximum(err_max, np.abs(x - y).max(axis=0, initial=0.0))
+    std, rms = np.sqrt(var / max(count, 1)), np.sqrt(err2 / max(count, 1))
+    varies = std > 1e-12 * np.abs(mean)  # below: a constant component (its spread is float64 round-off), no signal
+    with np.errstate(divide="ignore", invalid="ignore"):
+        loss = np.where(varies & (std > 0), rms / np.where(std > 0, std, 1.0), 0.0)
+    if not (loss > FLOAT32_TOLERANCE).any():
+        return
+    a = int(np.argmax(loss))
+    where = f"component {a} of {name}" if A > 1 else name
+    raise DatasetError(f"{name}: lnf stores fields and velocities in float32 (its dataset files and its model), and "
+                       f"rounding {where} to float32 changes them by up to {err_max[a]:.3g} (RMS {rms[a]:.3g}), "
+                       f"{loss[a]:.2g} of their own spread (standard deviation {std[a]:.3g} about a mean of "
+                       f"{mean[a]:.7g}; at most {FLOAT32_TOLERANCE:g} is accepted): their offset is "
+                       f"{abs(mean[a]) / std[a]:.3g} times their variation, more than float32's ~7 significant digits "
+                       f"resolve, so the variation would be silently lost. Subtract an offset (e.g. the mean, or a "
+                       f"reference configuration: values - values.mean(axis=(0, 1, 2))) and/or rescale, the same for "
+                       f"every split, and pass them again")
 
 
 @dataclass
@@ -109,9 +168,11 @@ class Trajectories:
         if dt <= 0 or np.abs(steps - dt).max() > TIME_TOLERANCE * dt:
             raise DatasetError(f"times: must be uniformly spaced and increasing (the reduced model integrates with "
                                f"one step dt), got steps from {steps.min()!r} to {steps.max()!r} s; resample them")
+        given = self.fields
         self.fields = _array("fields", self.fields, (3, 4), np.float32)
         if self.fields.ndim == 3:
             self.fields = self.fields[..., None]
+        _check_float32("fields", given, self.fields)
         n = self.fields.shape[0]
         if self.fields.shape[1:3] != (T, N) or n < 1 or self.fields.shape[3] < 1:
             raise DatasetError(f"fields: expected shape (n, T, N, A) = (n, {T}, {N}, A) for {T} times and {N} "
@@ -122,12 +183,15 @@ class Trajectories:
             self._velocities_given = False
         else:
             self._velocities_given = True
+        given = self.velocities
         self.velocities = _array("velocities", self.velocities, (3, 4), np.float32)
         if self.velocities.ndim == 3:
             self.velocities = self.velocities[..., None]
         if self.velocities.shape != self.fields.shape:
             raise DatasetError(f"velocities: expected the shape of fields {self.fields.shape}, got "
                                f"{self.velocities.shape}")
+        _check_float32("velocities" if self._velocities_given else "velocities (central differences of fields)",
+                       given, self.velocities)
         if self.weights is not None:
             self.weights = _array("weights", self.weights, (1,))
             if self.weights.shape != (N,) or (self.weights <= 0).any():

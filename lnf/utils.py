@@ -68,6 +68,15 @@ NUMBER_RULES: dict[str, tuple[str, float, Optional[float], str]] = {
     "dynamics.iterations": ("int", 0, None, "fitting iterations of the latent dynamics"),
     "dynamics.batch_size": ("int", 1, None, "the batch size of the latent dynamics"),
     "dynamics.window": ("int", 1, None, "the rollout window of the latent dynamics"),
+    # the data: a sample spacing no scene can mean (1e-300 s: trajectories that do not move; 1e300 s: a simulation
+    # that never ends) is refused before any generation
+    "data.dt": (">", 1e-12, 1e6, "the sample spacing of the generated trajectories [s]"),
+    "data.n_times": ("int", 2, None, "samples per trajectory"),
+    "data.train_times": ("int", 1, None, "the first samples used for training"),
+    "data.n_train": ("int", 1, None, "training trajectories"),
+    "data.n_val": ("int", 1, None, "validation trajectories"),
+    "data.n_test": ("int", 1, None, "test trajectories"),
+    "data.observed_fraction": (">", 0, 1, "the fraction of the coarse grid each trajectory observes"),
 }
 
 

@@ -84,3 +84,31 @@ def test_unknown_scene_or_integrator_is_a_clear_error(tmp_path):
 def test_evaluate_config_composes(tmp_path):
     cfg = compose_config("evaluate", ["ckpt_path=x.ckpt", "integrator=rk4", "quadrature=uniform"], tmp_path)
     assert cfg.integrator._target_.endswith("RK4") and cfg.quadrature.resolution == 64
+
+
+@pytest.mark.parametrize("override,value", [("data.dt=1e-300", "1e-300"), ("data.dt=1e300", "1e\\+300"),
+                                            ("data.dt=1e-13", "1e-13"), ("data.dt=2e6", "2000000.0"),
+                                            ("data.dt=0", "0"), ("data.dt=nan", "nan")])
+def test_a_data_dt_no_scene_can_mean_is_refused_before_any_generation(tmp_path, monkeypatch, override, value):
+    """data.dt=1e-300 used to train on trajectories that do not move, without a word; data.dt=1e300 hung in the
+    generation."""
+    import lnf.train
+
+    def no_scene(*args, **kwargs):
+        raise AssertionError("the scene was built (and data generated) before data.dt was checked")
+
+    monkeypatch.setattr(lnf.train, "build_scene", no_scene)
+    cfg = compose_config("train", ["+experiment=pendulum", override], tmp_path)
+    with pytest.raises(ValueError, match=rf"data\.dt must be a finite number > 1e-12 and ≤ 1000000 \(the sample "
+                                         rf"spacing of the generated trajectories \[s\]\), got {value}"):
+        lnf.train.train(cfg)
+
+
+def test_the_data_counts_are_checked_with_the_other_numbers(tmp_path):
+    from lnf.utils import check_config
+
+    check_config(compose_config("train", ["+experiment=pendulum", *TINY, "data.dt=1e-6"], tmp_path))  # in range
+    with pytest.raises(ValueError, match=r"data\.n_times must be an integer ≥ 2 \(samples per trajectory\), got 1.*"
+                                         r"data\.observed_fraction must be a finite number > 0 and ≤ 1 .*got 1.5"):
+        check_config(compose_config("train", ["+experiment=pendulum", "data.n_times=1", "data.train_times=1",
+                                              "data.observed_fraction=1.5"], tmp_path))

@@ -381,3 +381,93 @@ def test_datamodule_verifies_once_until_the_file_changes(tmp_path, monkeypatch, 
     assert len(calls) == 2 and "/train/coarse_fields" in caplog.text
     dm.prepare_data()
     assert len(calls) == 2
+
+
+# -- files that are not lnf's: never overwritten or deleted ----------------------------------------------
+def _users_files(tmp_path: Path) -> list[Path]:
+    """A text file, and a foreign HDF5 file that happens to carry format_version = 1 (lnf regenerated both)."""
+    text = tmp_path / "victim.txt"
+    text.write_text("the user's notes\n")
+    foreign = tmp_path / "results.h5"
+    with h5py.File(foreign, "w") as f:
+        f.attrs["format_version"] = 1
+        f["x"] = np.arange(5.0)
+    return [text, foreign]
+
+
+@pytest.mark.parametrize("on_mismatch", ["regenerate", "error"])
+def test_an_explicit_path_holding_a_file_lnf_did_not_write_is_refused_unchanged(tmp_path, on_mismatch):
+    for victim in _users_files(tmp_path):
+        before = victim.read_bytes()
+        with pytest.raises(DatasetError) as err:
+            _module(path=str(victim), on_mismatch=on_mismatch).prepare_data()
+        msg = str(err.value)
+        assert str(victim) in msg and "not recognisably an lnf dataset" in msg and "nothing was changed" in msg
+        assert "another file" in msg and "data.path=null" in msg
+        assert victim.read_bytes() == before and sorted(p.name for p in tmp_path.iterdir()) == [
+            "results.h5", "victim.txt"]
+
+
+def test_a_file_lnf_did_not_write_is_kept_aside_before_regeneration(tmp_path, scene, caplog, monkeypatch):
+    """At lnf's own default path (overwrite_other_settings=True), the file found there is kept under another name."""
+    for victim in _users_files(tmp_path):
+        before = victim.read_bytes()
+        monkeypatch.setattr(shutil, "disk_usage", lambda p: DiskUsage(10 ** 9, 10 ** 9, 0))
+        with pytest.raises(DatasetError, match="not enough free disk space"):  # a failed regeneration keeps it in place
+            ensure_dataset(scene, CFG, victim)
+        monkeypatch.undo()
+        assert victim.read_bytes() == before and not list(tmp_path.glob(f"{victim.name}.damaged-*"))
+        with caplog.at_level(logging.WARNING, logger="lnf.dataset"):
+            ensure_dataset(scene, CFG, victim)
+        (aside,) = tmp_path.glob(f"{victim.name}.damaged-*")
+        assert aside.read_bytes() == before and f"is kept as {aside}" in caplog.text
+        assert _file_problem(victim, generation_attributes(scene, CFG)) is None
+
+
+def test_a_checkpoint_data_path_outside_the_data_folder_is_never_written(tmp_path, scene, shared_file, caplog):
+    """A crafted checkpoint's data.path = /tmp/x/victim.txt made lnf.evaluate replace victim.txt with an HDF5 file."""
+    from lnf.evaluate import evaluation_data
+    from lnf.training.datamodule import default_path
+
+    data_dir = tmp_path / "data"
+    elsewhere = tmp_path / "x"
+    elsewhere.mkdir()
+    victims = _users_files(elsewhere)
+    for victim in victims:
+        before = victim.read_bytes()
+        for explicit in (False, True):
+            with caplog.at_level(logging.WARNING):
+                got = evaluation_data(scene, CFG, victim, data_dir, "regenerate", explicit)
+            assert got == default_path(data_dir, scene, CFG) and victim.read_bytes() == before
+            assert str(victim) in caplog.text and "lies outside the data folder" in caplog.text
+    assert sorted(p.name for p in elsewhere.iterdir()) == ["results.h5", "victim.txt"]
+    assert _file_problem(got, generation_attributes(scene, CFG)) is None
+    # an intact file of the recorded settings outside the folder is used as it is, read-only
+    copy = elsewhere / "pendulum.h5"
+    copy.write_bytes(shared_file.read_bytes())
+    mtime = copy.stat().st_mtime_ns
+    assert evaluation_data(scene, CFG, copy, data_dir, "regenerate", True) == copy
+    _zero_some_coarse_fields(copy)  # damaged outside: not regenerated there
+    mtime = copy.stat().st_mtime_ns
+    assert evaluation_data(scene, CFG, copy, data_dir, "regenerate", False) == got
+    assert copy.stat().st_mtime_ns == mtime
+    # inside the data folder: as training does (a damaged lnf file regenerated; a foreign one refused when explicit)
+    inside = data_dir / "victim.txt"
+    inside.write_text("notes")
+    with pytest.raises(DatasetError, match="not recognisably an lnf dataset"):
+        evaluation_data(scene, CFG, inside, data_dir, "regenerate", True)
+    assert inside.read_text() == "notes"
+
+
+def test_swapped_or_deleted_datasets_of_a_generated_file_are_found(fresh_file, scene):
+    with h5py.File(fresh_file, "r+") as f:  # the val and test groups swapped
+        f.move("val", "x"), f.move("test", "val"), f.move("x", "test")
+    kind, detail = _file_problem(fresh_file, generation_attributes(scene, CFG))
+    assert kind == "corrupt" and "holds other values than were written there" in detail
+    with pytest.raises(DatasetError, match=r"pendulum\.h5: dataset /val/\w+ holds other values"):
+        load_split(fresh_file, "val")
+    with h5py.File(fresh_file, "r+") as f:
+        f.move("val", "x"), f.move("test", "val"), f.move("x", "test")
+        f.attrs["lnf_manifest"] = "{}"  # the manifest edited: its attribute checksum no longer holds
+    with pytest.raises(DatasetError, match="root attribute lnf_manifest does not match its checksum"):
+        load_split(fresh_file, "val")

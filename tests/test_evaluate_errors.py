@@ -140,7 +140,19 @@ BAD_VALUES = [
     ("horizon=nan", r"horizon must be a finite number > 0 \[s\].*got nan"),
     ("horizon=-1", r"horizon must be a finite number > 0 \[s\].*got -1"),
     ("horizon=abc", r"horizon must be a finite number > 0 \[s\].*got 'abc'"),
-    ("train_horizon=nan", r"train_horizon must be a finite number ≥ 0 \[s\].*got nan"),
+    ("train_horizon=nan", r"train_horizon must be a finite number > 0 \[s\].*got nan"),
+    # extrapolation from t = 0 (nothing before it) or from before it: used to pass silently
+    ("train_horizon=0", r"train_horizon must be a finite number > 0 \[s\] \(where extrapolation starts; 0 leaves "
+                        r"no time before it\).*got 0"),
+    ("train_horizon=-1", r"train_horizon must be a finite number > 0 \[s\].*got -1"),
+    # a horizon that is not a whole number of dt used to be rounded (1.0 at 0.3 covered 0.9 s); one frame crashed
+    ("dt=0.3 horizon=1.0", r"horizon=1 \[s\] at dt=0.3 \[s\] is 3.33333 steps of dt, not a whole number: .*would "
+                           r"cover 0.9 s instead of 1 s; set horizon=0.9 or horizon=1.2 \(a whole number of dt\)"),
+    ("dt=0.05 horizon=0.06", r"horizon=0.06 \[s\] at dt=0.05 \[s\] is 1.2 steps of dt.*; set horizon=0.1 \("),
+    ("dt=0.05 horizon=0.05", r"horizon=0.05 \[s\] at dt=0.05 \[s\] is 1 frame: a rollout needs at least 2 frames"),
+    ("dt=0.05 horizon=1 train_horizon=100", r"train_horizon=100 \[s\] \(where extrapolation starts\) is beyond "
+                                            r"the evaluated horizon=1 \[s\] at dt=0.05 \[s\]: no frame would come "
+                                            r"after it; set train_horizon ≤ 1"),
     ("max_trajectories=0", r"max_trajectories must be an integer ≥ 1.*got 0"),
     ("max_trajectories=-3", r"max_trajectories must be an integer ≥ 1.*got -3"),
     ("max_trajectories=1.5", r"max_trajectories must be an integer ≥ 1.*got 1.5"),
@@ -220,6 +232,46 @@ def test_work_that_cannot_finish_is_refused_before_any_data_is_loaded(ckpt, tmp_
         monkeypatch.setattr(lnf.evaluate, name, no_data)
     with pytest.raises(ValueError, match=match):
         lnf.evaluate.evaluate(eval_cfg(ckpt, overrides, tmp_path))
+
+
+# Times checked against the data's own dt and horizon (20 samples at 0.05 s), still before any data are loaded
+DATA_TIMES = [
+    (["horizon=0.06"], r"horizon=0.06 \[s\] at dt=null \(the data’s: 0.05 s\) is 1.2 steps of dt, not a whole "
+                       r"number.*set horizon=0.1 \(a whole number of dt\)"),
+    (["dt=0.03"], r"horizon=null \(the data’s: 1 s\) at dt=0.03 \[s\] is 33.3333 steps of dt.*set "
+                  r"horizon=0.99 or horizon=1.02"),
+    (["train_horizon=100"], r"train_horizon=100 \[s\] \(where extrapolation starts\) is beyond the evaluated "
+                            r"horizon=null \(the data’s: 1 s\)"),
+]
+
+
+@pytest.mark.parametrize("overrides,match", DATA_TIMES, ids=[" ".join(o) for o, _ in DATA_TIMES])
+def test_times_that_do_not_fit_the_data_are_refused_before_any_data_is_loaded(ckpt, tmp_path, monkeypatch,
+                                                                               overrides, match):
+    import lnf.evaluate
+
+    def no_data(*args, **kwargs):
+        raise AssertionError("data were loaded or simulated before the times were checked")
+
+    for name in ("ensure_dataset", "verify_dataset", "load_split", "simulated_ground_truth", "evaluate_rollouts"):
+        monkeypatch.setattr(lnf.evaluate, name, no_data)
+    with pytest.raises(ValueError, match=match):
+        lnf.evaluate.evaluate(eval_cfg(ckpt, overrides, tmp_path))
+
+
+def test_rollout_frames_are_a_whole_number_of_dt_to_rounding():
+    from lnf.evaluate import rollout_frames
+
+    cfg = OmegaConf.create({"dt": None, "horizon": None, "train_horizon": None})
+    assert rollout_frames(cfg, 0.1, 1.0) == 10 and rollout_frames(cfg, 0.05, 0.1) == 2  # 1.0/0.1 = 10.000000000000002
+    assert rollout_frames(cfg, 0.01, 0.3) == 30 and rollout_frames(cfg, 0.05, 1e9) == 20_000_000_000
+    with pytest.raises(ValueError, match=r"horizon=null \(the data’s: 1 s\) at dt=null \(the data’s: 0.3 s\) is "
+                                         r"3.33333 steps"):
+        rollout_frames(cfg, 0.3, 1.0)
+    # train_horizon at the horizon passes here (nothing after it: a warning when the rollout runs), beyond it not
+    assert rollout_frames(OmegaConf.create({"train_horizon": 1.0}), 0.1, 1.0) == 10
+    with pytest.raises(ValueError, match=r"train_horizon=1.5 \[s\]"):
+        rollout_frames(OmegaConf.create({"train_horizon": 1.5}), 0.1, 1.0)
 
 
 def test_memory_limit_from_the_environment_and_the_machine(ckpt, tmp_path, monkeypatch):

@@ -180,3 +180,76 @@ def test_a_mesh_in_millimetres_needs_its_unit_stated_and_is_scaled_to_metres(tmp
         assert SoftBody(mesh_file=str(tmp_path / "finger_m.vtu")).params()["mesh_units"] == "m"
     assert "read as metres (scene.mesh_units not set: metres by default)" in caplog.text
     assert OmegaConf.load(compose_config.__globals__["CONF"] + "/scene/soft_body.yaml").mesh_units is None
+
+
+# -- 5. a body, whole and once: surfaces, degenerate and repeated cells are refused by name ------------------------
+def _tet_box():
+    box = box_mesh(list(BOX), [4, 2, 1], "tet")
+    return box.p.T, box.t.T  # nodes (N, 3), cells (48, 4)
+
+
+def test_repeated_cells_are_refused_naming_the_file_the_count_and_a_cell(tmp_path):
+    """Three tetrahedra written twice (99 instead of 96) used to pass, with their mass and stiffness doubled
+    (a body volume of 0.00773 m³ instead of 0.0075)."""
+    nodes, tets = _tet_box()
+    path = tmp_path / "repeated.vtu"
+    meshio.write(path, meshio.Mesh(nodes, [("tetra", np.vstack([tets, tets[[5, 7, 9]][:, ::-1]]))]))
+    with pytest.raises(ValueError, match=r"repeated.vtu: 3 of its 51 tetra cells repeat another cell \(the same "
+                                         r"nodes\), e.g. cell 48 repeats cell 5 .*mass and stiffness twice"):
+        SoftBody(mesh_file=str(path), mesh_units="m", release="shape")
+    meshio.write(path, meshio.Mesh(nodes, [("tetra", tets)]))  # the same body, each cell once: accepted whole
+    body = SoftBody(mesh_file=str(path), mesh_units="m", release="shape").body
+    assert body.quadrature_weights.sum() == pytest.approx(np.prod(BOX), rel=1e-12)
+
+
+@pytest.mark.parametrize("cell", [[0, 1, 2, 2], "flat"], ids=["repeated-node", "coplanar-corners"])
+def test_degenerate_cells_are_refused_when_the_mesh_is_read(tmp_path, cell):
+    """A zero-volume tetrahedron used to end in "det F < 0.1 … the displacement is too large for the mesh" or a
+    time step of None, far from its cause."""
+    nodes, tets = _tet_box()
+    if cell == "flat":  # four corners of the box's bottom face: in one plane
+        bottom = np.flatnonzero(nodes[:, 2] == 0.0)
+        cell = [int(bottom[0]), int(bottom[1]), int(bottom[3]), int(bottom[4])]
+    path = tmp_path / "flat.vtu"
+    meshio.write(path, meshio.Mesh(nodes, [("tetra", np.vstack([tets[:40], [cell], tets[40:]]))]))
+    with pytest.raises(ValueError, match=r"flat.vtu: 1 of its 49 tetra cells have zero volume \(degenerate.*\), "
+                                         r"e.g. cell 40 of its tetra cells.*volume 0"):
+        read_mesh(path, "m")
+
+
+def test_a_surface_or_an_off_plane_mesh_is_refused_saying_what_it_is_and_what_the_body_needs(tmp_path):
+    """Triangles of a box's surface, or a flat mesh in the y-z plane, used to end in "scene.time_step must be a
+    positive number, got None" (scikit-fem keeps a triangle mesh's x and y only)."""
+    box = box_mesh(list(BOX), [4, 2, 1], "tet")
+    surface = tmp_path / "surface.vtu"
+    meshio.write(surface, meshio.Mesh(box.p.T, [("triangle", box.facets[:, box.boundary_facets()].T)]))
+    needs = r"volume cells \(tetra or hexahedron\) that fill a 3-D body"
+    with pytest.raises(ValueError, match=rf"surface.vtu: its body is 56 triangle cells, 2-D cells whose nodes span "
+                                         rf"3-D space \(extent 0.5 × 0.15 × 0.1\): a surface, not a body; .*{needs}"):
+        SoftBody(mesh_file=str(surface), mesh_units="m")
+    plate = box_mesh([0.5, 0.15], [4, 2], "tri")
+    yz = tmp_path / "yz.vtu"
+    meshio.write(yz, meshio.Mesh(np.stack([np.zeros(plate.p.shape[1]), *plate.p], 1), [("triangle", plate.t.T)]))
+    with pytest.raises(ValueError, match=rf"yz.vtu: its body is 16 triangle cells, a 2-D mesh lying in a plane that "
+                                         rf"is not the x-y plane \(extent 0 × 0.5 × 0.15; its z varies by 0.15\).*{needs}"):
+        SoftBody(mesh_file=str(yz), mesh_units="m")
+    # the same plate in the x-y plane (z = 0, written as 3-D points) is a 2-D body
+    xy = tmp_path / "xy.vtu"
+    meshio.write(xy, meshio.Mesh(np.stack([*plate.p, np.zeros(plate.p.shape[1])], 1), [("triangle", plate.t.T)]))
+    assert SoftBody(mesh_file=str(xy), mesh_units="m", release="shape").dim == 2
+
+
+def test_an_unstated_unit_is_a_warning_even_within_the_plausible_range(tmp_path, caplog):
+    """An 8 mm part drawn in mm (extent 8) passes as an 8 m body: said as a warning, not an info line."""
+    box = box_mesh([8.0, 2.0, 1.0], [2, 1, 1], "tet")
+    path = tmp_path / "part_in_mm.vtu"
+    meshio.write(path, meshio.Mesh(box.p.T, [("tetra", box.t.T)]))
+    with caplog.at_level(logging.INFO, logger="lnf.fem"):
+        read_mesh(path, key="scene.mesh_units")
+    warned = [r.getMessage() for r in caplog.records if r.name == "lnf.fem" and r.levelno == logging.WARNING]
+    assert len(warned) == 1 and "extent 8 × 2 × 1 m -> read as metres (scene.mesh_units not set: metres by " \
+        "default); set scene.mesh_units if it is not (e.g. scene.mesh_units=mm: a 0.008 m body)" in warned[0], warned
+    caplog.clear()
+    with caplog.at_level(logging.INFO, logger="lnf.fem"):
+        read_mesh(path, "m", key="scene.mesh_units")  # stated: an info line only
+    assert not [r for r in caplog.records if r.levelno >= logging.WARNING] and "read as metres" in caplog.text

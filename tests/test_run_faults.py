@@ -202,3 +202,45 @@ def test_a_damaged_test_split_is_regenerated_before_training(finished, tmp_path,
         metrics = train(_cfg(tmp_path, "trainer.max_epochs=2"))
     assert "regenerating" in caplog.text and "/test/fields" in caplog.text
     assert result_metrics(metrics) == result_metrics(finished[1])
+
+
+def test_a_resumed_checkpoint_of_other_settings_is_refused_unless_asked_for(finished, tmp_path, caplog):
+    """Resuming with model.w0=30 continued weights trained at w0=10, and the new checkpoint recorded w0=30; a new
+    lr was silently replaced by the checkpoint's optimizer state; other data relabelled last.ckpt's data record."""
+    _copy_of(finished, tmp_path)
+    (_out(tmp_path) / "metrics.json").unlink()
+    for other, named in [(["model.w0=30", "quadrature.order=6"], r"model\.w0: checkpoint 10\.0, config 30.*"
+                                                                 r"quadrature\.order: checkpoint 4, config 6"),
+                         (["optimizer.lr=0.1"], r"optimizer\.lr: checkpoint 0\.0003, config 0\.1"),
+                         (["data.seed=5"], r"data\.seed: checkpoint 0, config 5")]:
+        with pytest.raises(ValueError, match=rf"trained with other settings \({named}.*resume_other_settings=true"):
+            train(_cfg(tmp_path, "trainer.max_epochs=3", *other))
+        assert not (_out(tmp_path) / "metrics.json").exists()
+    with caplog.at_level(logging.WARNING, logger="lnf.train"):
+        metrics = train(_cfg(tmp_path, "trainer.max_epochs=3", "optimizer.lr=0.1", "resume_other_settings=true"))
+    assert metrics["epochs_run"] == 3 and "optimizer.lr: checkpoint 0.0003, config 0.1" in caplog.text
+
+
+def test_a_resumed_checkpoint_cannot_make_training_delete_files_outside_its_folder(finished, tmp_path, caplog):
+    """ModelCheckpoint deletes the files its restored state lists when it keeps its top k: a crafted state listing
+    ../../victim.txt deleted that file on resume."""
+    _copy_of(finished, tmp_path)
+    out = _out(tmp_path)
+    (out / "metrics.json").unlink()
+    victim, notes = tmp_path / "victim.txt", out / "checkpoints" / "my_notes.txt"
+    victim.write_text("a user's file")
+    notes.write_text("a user's notes beside the checkpoints")
+    ckpt = torch.load(out / "checkpoints" / "last.ckpt", weights_only=True)
+    for key, state in ckpt["callbacks"].items():
+        if key.startswith("ModelCheckpoint"):
+            outside = str(out / "checkpoints" / ".." / ".." / "victim.txt")
+            state.update(dirpath=str(out / "checkpoints"), best_model_path=outside, kth_best_model_path=str(notes),
+                         last_model_path=outside, best_k_models={outside: torch.tensor(1e9), str(notes): torch.tensor(1e9)},
+                         best_model_score=torch.tensor(1e9), kth_value=torch.tensor(1e9))
+    for name in ("last.ckpt", *[p.name for p in (out / "checkpoints").glob("epoch*.ckpt")]):
+        torch.save(ckpt, out / "checkpoints" / name)
+    with caplog.at_level(logging.WARNING, logger="lnf.train"):
+        metrics = train(_cfg(tmp_path, "trainer.max_epochs=3"))
+    assert metrics["epochs_run"] == 3
+    assert victim.read_text() == "a user's file" and notes.read_text() == "a user's notes beside the checkpoints"
+    assert "names files outside" in caplog.text and "victim.txt" in caplog.text

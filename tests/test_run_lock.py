@@ -26,13 +26,18 @@ def _holder(folder: Path) -> subprocess.Popen:
 
 
 def test_a_second_run_in_a_held_folder_is_refused_naming_the_first(tmp_path):
-    with run_folder_lock(tmp_path, "python -m lnf.train"):
+    proc = _holder(tmp_path)
+    try:
         with pytest.raises(RunFolderBusyError, match=rf"{tmp_path} is in use by another lnf run \(python -m "
-                                                     rf"lnf\.train, process {os.getpid()}.*hydra\.run\.dir"):
+                                                     rf"lnf\.train \(test\), process {proc.pid}.*hydra\.run\.dir"):
             with run_folder_lock(tmp_path, "python -m lnf.evaluate"):
                 pass
-    with run_folder_lock(tmp_path, "again"):  # released at the end of the block
-        pass
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(timeout=30)
+    with run_folder_lock(tmp_path, "again"):  # released when its holder ended
+        with run_folder_lock(tmp_path, "nested"):  # the same process may hold it twice (its Hydra run, then train)
+            pass
     assert (tmp_path / LOCK_NAME).is_file()
 
 
@@ -97,3 +102,44 @@ def test_an_evaluation_sets_earlier_results_aside_and_writes_its_provenance_firs
     metrics = evaluate_module.evaluate(ecfg)
     assert set(json.loads((out / "metrics.json").read_text())) == set(metrics)
     assert len(list((out / "previous").iterdir())) == 2
+
+
+def test_a_refused_cli_run_leaves_the_first_runs_hydra_files_alone(tmp_path):
+    """Hydra writes .hydra/ before it calls lnf.train: the folder is held from before that (RunFolderGuard)."""
+    run = tmp_path / "run"
+    (run / ".hydra").mkdir(parents=True)
+    (run / ".hydra" / "config.yaml").write_text("the first run's config\n")
+    proc = _holder(run)
+    try:
+        env = {**os.environ, "LNF_ROOT": str(tmp_path), "WANDB_MODE": "offline"}
+        for entry, args in [("lnf.train", ["+experiment=pendulum", "trainer=smoke", "logger=csv", *TINY]),
+                            ("lnf.evaluate", ["ckpt_path=/nonexistent.ckpt"])]:
+            cli = subprocess.run([sys.executable, "-m", entry, *args, f"hydra.run.dir={run}"], env=env,
+                                 capture_output=True, text=True, timeout=300)
+            assert cli.returncode != 0 and "is in use by another lnf run" in cli.stderr, cli.stderr[-2000:]
+            assert (run / ".hydra" / "config.yaml").read_text() == "the first run's config\n"
+            assert not (run / ".hydra" / "overrides.yaml").exists()
+    finally:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(timeout=30)
+
+
+@pytest.mark.slow
+def test_an_evaluation_into_a_training_folder_keeps_the_trainings_files(tmp_path):
+    """`lnf.evaluate hydra.run.dir=<a training run>` replaced the run's .hydra/ (and its metrics.json)."""
+    run = tmp_path / "run"
+    env = {**os.environ, "LNF_ROOT": str(tmp_path), "WANDB_MODE": "offline"}
+    train = subprocess.run([sys.executable, "-m", "lnf.train", "+experiment=pendulum", "trainer=smoke",
+                            "trainer.max_epochs=1", "logger=csv", *TINY, "evaluation.figures=0",
+                            f"hydra.run.dir={run}"], env=env, capture_output=True, text=True, timeout=300)
+    assert train.returncode == 0, train.stderr[-2000:]
+    trained = json.loads((run / "metrics.json").read_text())
+    evaluate = subprocess.run([sys.executable, "-m", "lnf.evaluate", f"ckpt_path={run / 'checkpoints' / 'last.ckpt'}",
+                               "figures=0", "long_steps=0", f"hydra.run.dir={run}"], env=env, capture_output=True,
+                              text=True, timeout=300)
+    assert evaluate.returncode == 0, evaluate.stderr[-2000:]
+    (previous,) = (run / "previous").iterdir()
+    assert json.loads((previous / "metrics.json").read_text()) == trained
+    assert "trainer:" in (previous / ".hydra" / "config.yaml").read_text()  # the training's config, kept
+    assert "ckpt_path:" in (run / ".hydra" / "config.yaml").read_text()  # the evaluation's, beside its metrics
+    assert (run / "checkpoints" / "last.ckpt").is_file()

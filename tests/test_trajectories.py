@@ -34,6 +34,14 @@ def _digest(path):
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
+def _as_before_manifests(f):
+    """Make the open file `f` one of an lnf that wrote no lnf_manifest (its attribute checksums without it)."""
+    del f.attrs["lnf_manifest"]
+    digests = json.loads(f.attrs["lnf_attributes_checksum"])
+    del digests["lnf_manifest"]
+    f.attrs["lnf_attributes_checksum"] = json.dumps(digests)
+
+
 @pytest.mark.parametrize("change, message", [
     (dict(times=0.1 * np.arange(12) ** 1.01), "uniformly spaced"),
     (dict(times=0.1 * np.arange(12) + 1.0), "must start at 0"),
@@ -130,6 +138,7 @@ def test_points_are_kept_in_float64_and_float32_collisions_are_refused(tmp_path)
         del f["grids/coarse"], f["grids/fine"]
         _write_array(f, "grids/fine", far.astype(np.float32)[:, None])
         f["grids/coarse"] = f["grids/fine"]
+        _as_before_manifests(f)
     for read in (lambda: verify_dataset(path), lambda: load_split(path, "train")):
         with pytest.raises(DatasetError, match=r"near\.h5: /grids/fine: points 0 and 1 are the same point "
                                                r"\[10000000.0\], given twice with different /train/fields.*stores "
@@ -222,8 +231,14 @@ def test_scattered_points_from_arrays_train_evaluate_and_draw(tmp_path):
     assert (tmp_path / "out" / "figures" / "test_trajectory0.png").stat().st_size > 0
 
     ckpt = tmp_path / "out" / "checkpoints" / "last.ckpt"
-    held = torch.load(ckpt, map_location="cpu", weights_only=False)["hyper_parameters"]["data"]
+    saved = torch.load(ckpt, map_location="cpu", weights_only=False)
+    held = saved["hyper_parameters"]["data"]
     assert held["source"] == "arrays" and held["generation"]["n_train"] == 3
+    from lnf.dataset import content_checksum
+    from lnf.model import load
+
+    # the checkpoint records the content checksum of the file it was trained on, which lnf.evaluate compares
+    assert saved["SnapshotDataModule"]["checksum"] == content_checksum(path) == load(ckpt).checkpoint["data_checksum"]
     again = evaluate(compose_config("evaluate", [f"ckpt_path={ckpt}", "figures=0", "long_steps=0",
                                             "max_reduction_points=64"], tmp_path / "e"))
     assert again["field_rel_l2/all/median"] == pytest.approx(metrics["field_rel_l2/all/median"], rel=1e-5)
@@ -284,3 +299,110 @@ def test_a_missing_file_for_a_scene_without_simulator_says_to_write_it(tmp_path)
     with pytest.raises(DatasetError, match=r"no file there, and scene 'onlylagrangian' has no simulator .*"
                                            r"lnf.trajectories.write_dataset"):
         SnapshotDataModule(OnlyLagrangian(), path=str(tmp_path / "absent.h5"))
+
+
+def test_masked_arrays_are_refused_not_stored_with_their_fill_values():
+    """netCDF readers return masked arrays; np.asarray drops the mask and keeps the fill values (1e20) as data."""
+    good = _string(2)
+    fields = np.ma.masked_array(good.fields, mask=np.zeros(good.fields.shape, bool))
+    fields.mask[1, 3, 4, 0] = True
+    with pytest.raises(DatasetError, match=r"fields: got a masked array with 1 masked \(missing\) values of 216 \(the "
+                                           r"first at index \[1, 3, 4, 0\]\).*fill values"):
+        Trajectories(points=good.points, times=good.times, fields=fields, velocities=good.velocities)
+    weights = np.ma.masked_invalid([1.0, np.nan] + [1.0] * 7)
+    with pytest.raises(DatasetError, match=r"weights: got a masked array with 1 masked"):
+        Trajectories(points=good.points, times=good.times, fields=good.fields, weights=weights)
+    unmasked = np.ma.masked_array(good.fields, mask=False)  # nothing masked: its values, as a plain array
+    np.testing.assert_array_equal(Trajectories(points=good.points, times=good.times, fields=unmasked).fields,
+                                  good.fields)
+
+
+def test_values_that_float32_cannot_resolve_are_refused_naming_the_loss():
+    """Fields of 1e4 + 1e-3·noise lost 30 % of their signal in float32; at an offset of 1e6 distinct splits even
+    collapsed into one and were reported as a train/test leak."""
+    base = _string(3)
+    base.fields, base.velocities = base.fields.astype(np.float64), base.velocities.astype(np.float64)
+    noise = 1e-3 * np.random.default_rng(1).standard_normal(base.fields.shape)
+    with pytest.raises(DatasetError, match=r"^fields: lnf stores fields and velocities in float32.*changes them by up "
+                                           r"to .*of their own spread.*mean of 10000.*Subtract an offset"):
+        Trajectories(points=base.points, times=base.times, fields=1e4 + noise, velocities=base.velocities)
+    with pytest.raises(DatasetError, match=r"^velocities: lnf stores"):
+        Trajectories(points=base.points, times=base.times, fields=base.fields, velocities=1e6 + base.velocities)
+    two = np.concatenate([base.fields, 1e6 + 1e-3 * base.fields], axis=-1)  # each component on its own spread
+    with pytest.raises(DatasetError, match=r"component 1 of fields"):
+        Trajectories(points=base.points, times=base.times, fields=two, velocities=np.zeros_like(two))
+    # what the message suggests passes, and so do a constant component and values already in float32
+    kept = Trajectories(points=base.points, times=base.times, fields=noise, velocities=base.velocities)
+    np.testing.assert_allclose(kept.fields, noise, rtol=1e-6)
+    for fields in (np.full(base.fields.shape, 0.1), (1e4 + noise).astype(np.float32)):
+        Trajectories(points=base.points, times=base.times, fields=fields, velocities=base.velocities)
+
+
+def _with_everything(**kw) -> tuple:
+    """Three splits with weights, energies and controls: every optional dataset of a file written from arrays."""
+    out = []
+    for n, seed in ((3, 0), (1, 1), (2, 2)):
+        part = _string(n, seed=seed, **kw)
+        rng = np.random.default_rng(10 + seed)
+        part.kinetic, part.potential = rng.uniform(1, 2, (2, n, 12))
+        part.controls = rng.uniform(0, 1, (n, 2))
+        out.append(part)
+    return tuple(out)
+
+
+@pytest.mark.parametrize("damage, key", [
+    (lambda f: f.__delitem__("grids/weights"), "/grids/weights"),
+    (lambda f: [f.__delitem__(f"{s}/controls") for s in ("train", "val", "test")], "/(train|val|test)/controls"),
+    (lambda f: [f.__delitem__(f"{s}/{k}") for s in ("train", "val", "test")
+                for k in ("kinetic", "potential", "energy")], "/(train|val|test)/(kinetic|potential|energy)"),
+    (lambda f: f.move("val", "x") or f.move("test", "val") or f.move("x", "test"), "/test/"),
+])
+def test_optional_datasets_deleted_or_splits_swapped_are_found(tmp_path, damage, key):
+    """Deleting /grids/weights (the data then loaded with weights=None although lnf_generation says "weights": true),
+    all controls or all energies, or swapping the val and test groups (the same counts here) passed verification."""
+    train, val, test = _with_everything()
+    val, test = val.select([0]), test.select([0])
+    path = write_dataset(tmp_path / "mine.h5", train, val, test)
+    assert load_split(path, "train").weights is not None and verify_dataset(path) == path
+    with h5py.File(path, "r+") as f:
+        damage(f)
+    with pytest.raises(DatasetError, match=rf"mine\.h5: .*{key}.*cannot be regenerated"):
+        verify_dataset(path)
+    with pytest.raises(DatasetError, match=r"mine\.h5: "):  # the test split is the one each of them touches
+        load_split(path, "test")
+
+
+def test_a_file_replaced_while_in_use_is_refused_and_named_by_evaluate(tmp_path, caplog):
+    """A same-settings file with other test fields swapped in 9 s into training made the test stage report metrics on
+    the new file; lnf.evaluate of a checkpoint trained on the old one said nothing."""
+    import logging
+    import os
+
+    from lnf.evaluate import warn_if_changed
+    from lnf.training.datamodule import SnapshotDataModule
+
+    scene, rng = LiftedPendulum(), np.random.default_rng(0)
+    points = rng.uniform(-1, 1, (20, 2))
+    train, val = _pendulum_arrays(scene, 3, 8, points, rng), _pendulum_arrays(scene, 1, 8, points, rng)
+    path = write_dataset(tmp_path / "mine.h5", train, val, _pendulum_arrays(scene, 2, 8, points, rng))
+    other = write_dataset(tmp_path / "other.h5", train, val, _pendulum_arrays(scene, 2, 8, points, rng))
+    dm = SnapshotDataModule({"_target_": "lnf.scenes.LiftedPendulum"}, path=str(path), batch_size=4)
+    dm.prepare_data()
+    dm.setup("fit")
+    first = dm.checksum
+    assert first and dm.describe()["checksum"] == first and dm.state_dict() == {"path": str(path), "checksum": first}
+    os.replace(other, path)
+    with pytest.raises(DatasetError, match=rf"mine\.h5: the file changed while this run was using it: its content "
+                                           rf"checksum was {first} when the run first verified it, it is blake2b:"):
+        dm.setup("test")
+    with caplog.at_level(logging.WARNING):
+        warn_if_changed(path, first)
+    assert f"{path} changed since the checkpoint was trained on it" in caplog.text and first in caplog.text
+    assert "the metrics are those of the file as it is now" in caplog.text
+    caplog.clear()
+    fresh = SnapshotDataModule({"_target_": "lnf.scenes.LiftedPendulum"}, path=str(path), batch_size=4)
+    fresh.prepare_data()
+    with caplog.at_level(logging.WARNING):
+        warn_if_changed(path, fresh.checksum)  # unchanged: no warning
+        fresh.load_state_dict({"checksum": first})  # a resumed checkpoint trained on the old file
+    assert caplog.text.count("changed since") == 1 and "resumed checkpoint" in caplog.text

@@ -108,3 +108,16 @@ def test_nested_targets_are_checked_too(tmp_path):
     path = _checkpoint(tmp_path / "c.ckpt", model={"dynamics": {"_target_": "subprocess.Popen", "args": ["true"]}})
     with pytest.raises(UntrustedTargetError, match=r"model\.dynamics\._target_ = 'subprocess\.Popen'"):
         lnf.load(path)
+
+
+@pytest.mark.parametrize("value, expected", [("mypkg", ["mypkg"]), (["a", "b.c"], ["a", "b.c"]), (None, []),
+                                             ([], [])])
+def test_evaluate_reads_trust_as_module_names_never_as_characters(value, expected):
+    """`lnf.evaluate trust=mypkg` once became ['m', 'y', ...]: every one-letter module was trusted."""
+    from omegaconf import OmegaConf
+
+    from lnf.evaluate import trust_setting
+
+    assert trust_setting(OmegaConf.create({"trust": value})) == expected
+    with pytest.raises(ValueError, match="trust must be a module name"):
+        trust_setting(OmegaConf.create({"trust": {"a": 1}}))

@@ -321,8 +321,11 @@ def read_mesh(path: Union[str, Path], units: Optional[str] = None,
     `units`: the length unit of the file's coordinates (a key of :data:`MESH_UNITS`: ``m``, ``cm``, ``mm``, …);
     the nodes are scaled to metres. None: metres, when the mesh's largest extent is a plausible body's
     (:data:`PLAUSIBLE_EXTENT` [m]); otherwise a ValueError asks for the unit (a mesh drawn in millimetres is not
-    taken for one 1000 times larger). The mesh, its extent and its unit are logged (``lnf.fem``); a stated unit
-    that gives an implausible extent is warned of. `key`: the setting named in messages (``scene.mesh_units``)."""
+    taken for one 1000 times larger). The mesh, its extent and its unit are logged (``lnf.fem``): as a warning
+    when the unit is not stated (read as metres, a guess: an 8 mm part drawn in mm passes as an 8 m body), and
+    when a stated unit gives an implausible extent. The body's cells are checked (:func:`check_body_cells`: no
+    surface or off-plane mesh, no degenerate or repeated cells). `key`: the setting named in messages
+    (``scene.mesh_units``)."""
     from lnf.mesh_io import read_meshio
 
     path = Path(path)
@@ -343,7 +346,8 @@ def read_mesh(path: Union[str, Path], units: Optional[str] = None,
                 f"{extent.max():.4g} m body, outside the {lo:g}–{hi:g} m lnf expects; state the unit of its "
                 f"coordinates, e.g. {key}=mm (then {extent.max() * MESH_UNITS['mm']:.4g} m) or {key}=m to take it as it is "
                 f"(one of {', '.join(MESH_UNITS)})")
-        unit, stated = "m", f"read as metres ({key} not set: metres by default)"
+        unit, stated = "m", (f"read as metres ({key} not set: metres by default); set {key} if it is not (e.g. "
+                             f"{key}=mm: a {extent.max() * MESH_UNITS['mm']:.4g} m body)")
     else:
         unit = str(units)
         stated = "read as metres" if unit == "m" else f"read as {UNIT_NAMES[unit]}, scaled to metres"
@@ -352,8 +356,9 @@ def read_mesh(path: Union[str, Path], units: Optional[str] = None,
         mesh = type(mesh)(mesh.p * scale, mesh.t)
     cells = f"{mesh.t.shape[1]} {MESHIO_NAMES[type(mesh)]}"
     in_metres = " × ".join(f"{e:.4g}" for e in extent * scale)
-    log.info("mesh %s: %d nodes, %s, extent %s %s -> %s%s", path, mesh.p.shape[1], cells, size, unit, stated,
-             "" if scale == 1.0 else f" ({in_metres} m)")
+    # an unstated unit is a guess (a mesh drawn in mm with an extent of 8 passes as an 8 m body): a warning
+    log.log(logging.INFO if units is not None else logging.WARNING, "mesh %s: %d nodes, %s, extent %s %s -> %s%s",
+            path, mesh.p.shape[1], cells, size, unit, stated, "" if scale == 1.0 else f" ({in_metres} m)")
     if units is not None and not lo <= extent.max() * scale <= hi:
         log.warning("mesh %s: extent %s %s%s, read with %s=%s, is outside the %g–%g m of a plausible body: are its "
                     "coordinates in %s? If not, set %s to their unit (one of %s)", path, size, unit,
@@ -412,6 +417,61 @@ def body_cell_type(raw: Any, source: str = "mesh") -> str:
     return next(iter(body))
 
 
+BODY_NEEDS = (f"lnf's soft body needs volume cells ({' or '.join(FEM_CELLS[3])}) that fill a 3-D body (mesh the "
+              f"volume, e.g. gmsh -3), or, for a 2-D body, {' or '.join(FEM_CELLS[2])} cells in the x-y plane")
+# a cell whose measure is at most this fraction of the median cell's (or of the body's box) is degenerate
+DEGENERATE_FRACTION = 1e-10
+
+
+def check_body_cells(mesh: skfem.Mesh, points: np.ndarray, kind: str, source: str = "mesh") -> None:
+    """Refuse, naming `source`, a body lnf would use wrongly: cells of a lower dimension than the space their nodes
+    span (a surface of triangles in 3-D, or a planar mesh outside the x-y plane: scikit-fem keeps only x and y),
+    degenerate cells (zero volume: corners in a plane, or a repeated node) and repeated cells (the same nodes: their
+    mass and stiffness would count twice). `mesh`: scikit-fem's conversion, its cells numbered by the file's nodes;
+    `points`: the file's coordinates of the nodes its cells use (as written, all columns)."""
+    dim, n_cells = mesh.p.shape[0], mesh.t.shape[1]
+    extent = np.ptp(points, axis=0) if len(points) else np.zeros(points.shape[1])
+    shown = " × ".join(f"{e:.4g}" for e in extent)
+    scale = float(extent.max()) if extent.size else 0.0
+    if points.shape[1] > dim and scale > 0:
+        sv = np.linalg.svd(points - points.mean(0), compute_uv=False)
+        spans = int((sv > 1e-9 * sv[0]).sum())
+        if spans > dim:
+            raise ValueError(f"{source}: its body is {n_cells} {kind} cells, {dim}-D cells whose nodes span {spans}-D "
+                             f"space (extent {shown}): a surface, not a body; {BODY_NEEDS}")
+        off = [a for a in range(dim, points.shape[1]) if extent[a] > 1e-9 * scale]
+        if off:
+            axis = "xyz"[off[0]] if off[0] < 3 else f"coordinate {off[0]}"
+            raise ValueError(f"{source}: its body is {n_cells} {kind} cells, a {dim}-D mesh lying in a plane that is not "
+                             f"the x-y plane (extent {shown}; its {axis} varies by {extent[off[0]]:.4g}): a {dim}-D "
+                             f"body is read from x and y only and would be flattened; {BODY_NEEDS} (rotate it into "
+                             f"that plane, z constant)")
+    from skfem.quadrature import get_quadrature
+
+    X, W = get_quadrature(mesh.refdom, 2)
+    with np.errstate(divide="ignore", invalid="ignore"):  # a degenerate cell's inverse map: found below, by name
+        volumes = np.abs(mesh.mapping().detDF(X)) @ W  # (n_cells,), in the file's unit^dim
+    typical = float(np.median(volumes)) if n_cells else 0.0
+    bad = np.flatnonzero(volumes <= DEGENERATE_FRACTION * max(typical, scale ** dim))
+    if len(bad):
+        i = int(bad[0])
+        raise ValueError(f"{source}: {len(bad)} of its {n_cells} {kind} cells have zero volume (degenerate: corners in a "
+                         f"plane or a repeated node), e.g. cell {i} of its {kind} cells, counted from 0 in the file's "
+                         f"order (nodes {sorted(int(v) for v in mesh.t[:, i])}, volume {volumes[i]:.3g} against a "
+                         f"median {typical:.3g}); a degenerate cell has no stiffness or mass lnf can use: remove it or "
+                         f"re-mesh")
+    keys = np.sort(mesh.t, axis=0).T
+    _, first, inverse = np.unique(keys, axis=0, return_index=True, return_inverse=True)
+    inverse = np.asarray(inverse).reshape(-1)
+    repeats = np.flatnonzero(first[inverse] != np.arange(n_cells))
+    if len(repeats):
+        i = int(repeats[0])
+        raise ValueError(f"{source}: {len(repeats)} of its {n_cells} {kind} cells repeat another cell (the same "
+                         f"nodes), e.g. cell {i} repeats cell {int(first[inverse[i]])} of its {kind} cells, counted "
+                         f"from 0 in the file's order (nodes {sorted(int(v) for v in mesh.t[:, i])}); a repeated "
+                         f"cell counts its mass and stiffness twice: remove the duplicates")
+
+
 def from_meshio(raw: Any, source: str = "mesh") -> tuple[skfem.Mesh, dict[str, np.ndarray]]:
     """(scikit-fem mesh, named node masks) of a meshio mesh (see :func:`read_mesh`): its body is all its cells of
     the highest dimension, which must be of one type of :data:`FEM_CELLS` (:func:`body_cell_type`); scikit-fem
@@ -427,6 +487,7 @@ def from_meshio(raw: Any, source: str = "mesh") -> tuple[skfem.Mesh, dict[str, n
     if type(full) not in ELEMENTS:
         raise ValueError(f"{source}: a {type(full).__name__}; lnf needs linear cells {list(MESHIO_CELLS)}")
     used = np.unique(full.t)
+    check_body_cells(full, np.asarray(raw.points, dtype=np.float64)[used], kind, source)
     renumber = -np.ones(full.p.shape[1], dtype=np.int64)
     renumber[used] = np.arange(len(used))
     mesh = type(full)(np.asarray(full.p[:, used], dtype=np.float64).copy(), renumber[full.t].copy())

@@ -52,7 +52,10 @@ class SoftBody(ElasticCantilever):
             ê (d numbers) and p.
         mesh_units: the length unit of mesh_file's coordinates (``m``, ``cm``, ``mm``, …
             :data:`lnf.fem.body.MESH_UNITS`), scaled to metres; null: metres, unless the mesh's extent is implausible as metres (then an error asks
-            for the unit). The mesh, its extent and unit are logged when it is read.
+            for the unit). The mesh, its extent and unit are logged when it is read: a warning when null (read as
+            metres; set mesh_units if it is not).
+    A mesh file is refused, naming it, when its cells do not fill a body (triangles spanning 3-D space: a
+    surface; a 2-D mesh outside the x-y plane), or when some of them are degenerate (zero volume) or repeated.
     """
 
     name = "soft_body"

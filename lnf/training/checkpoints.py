@@ -16,6 +16,7 @@ from typing import Any, Optional
 
 import torch
 from lightning.fabric.plugins.io.torch_io import TorchCheckpointIO
+from lightning.pytorch.callbacks import ModelCheckpoint
 
 from lnf.tempfiles import writer_is_gone
 from lnf.trust import read_weights_only
@@ -130,3 +131,47 @@ def resume_checkpoint(ckpt_path: Optional[str], output_dir: Path) -> tuple[Optio
     if ckpt is None:
         raise ValueError(f"ckpt_path={ckpt_path}: the file {why}; pick another checkpoint")
     return path, ckpt
+
+
+PATH_KEYS = ("best_model_path", "kth_best_model_path", "last_model_path")
+
+
+def confined_state(state: dict[str, Any], dirpath: Any) -> dict[str, Any]:
+    """A ModelCheckpoint's restored state with every file it names inside its own `dirpath` and named ``*.ckpt``.
+
+    ModelCheckpoint deletes the files its state lists when it keeps its top k; a checkpoint's state is the file's
+    to say, so a crafted one could name any file (``../../thesis.txt``) for deletion on resume. Paths outside the
+    folder (after resolving ``..`` and links) are dropped, each named in a warning."""
+    state = dict(state)
+    root = Path(dirpath).resolve() if dirpath else None
+
+    def inside(path: Any) -> bool:
+        if not path or root is None:
+            return False
+        resolved = Path(str(path)).resolve()
+        return resolved.suffix == ".ckpt" and resolved.parent == root
+
+    dropped = [str(state[k]) for k in PATH_KEYS if state.get(k) and not inside(state[k])]
+    for key in PATH_KEYS:
+        if state.get(key) and not inside(state[key]):
+            state[key] = ""
+    if isinstance(state.get("best_k_models"), dict):
+        kept = {p: v for p, v in state["best_k_models"].items() if inside(p)}
+        dropped += [str(p) for p in state["best_k_models"] if p not in kept]
+        state["best_k_models"] = kept
+    if dropped:
+        log.warning("the resumed checkpoint's ModelCheckpoint state names files outside %s (%s): ignored, and never "
+                    "deleted", root, ", ".join(sorted(set(dropped))))
+    return state
+
+
+def confine_restored_state(callback: ModelCheckpoint) -> ModelCheckpoint:
+    """Make `callback` restore its state through :func:`confined_state` (lnf.train does it for every
+    ModelCheckpoint, a user's own included)."""
+    restore = callback.load_state_dict
+
+    def load_state_dict(state: dict[str, Any]) -> None:
+        restore(confined_state(state, callback.dirpath))
+
+    callback.load_state_dict = load_state_dict  # type: ignore[method-assign]
+    return callback

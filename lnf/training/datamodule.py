@@ -15,7 +15,7 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader, Dataset
 
-from lnf.dataset import (SOURCE_ARRAYS, DatasetConfig, DatasetError, TrajectorySplit, dataset_source,
+from lnf.dataset import (SOURCE_ARRAYS, DatasetConfig, DatasetError, TrajectorySplit, content_checksum, dataset_source,
                          ensure_dataset, generation_attributes, load_split, observed_index, stored_generation)
 from lnf.model import build
 from lnf.scenes.base import Scene
@@ -181,7 +181,7 @@ class SnapshotDataModule(pl.LightningDataModule):
                  explicit_path: Optional[bool] = None, **generation: Any) -> None:
         super().__init__()
         self.scene = build(scene) if isinstance(scene, dict) else scene
-        self.config = DatasetConfig.from_mapping(generation, ignore=("source", "generation"))
+        self.config = DatasetConfig.from_mapping(generation, ignore=("source", "generation", "checksum"))
         # an explicit path may be shared by runs with other settings: its file is never overwritten with them
         # (None: whether `path` is given; a checkpoint's describe() records it)
         self.explicit_path = bool(path) if explicit_path is None else bool(explicit_path)
@@ -200,6 +200,9 @@ class SnapshotDataModule(pl.LightningDataModule):
                                f"(simulate() and sample_initial_states()) to generate one; write your trajectories "
                                f"there with lnf.trajectories.write_dataset (see docs/own_system.md)")
         self._verified: Optional[tuple[int, int, int]] = None  # (inode, size, mtime) of the file last ensured
+        # content checksum of the file when first ensured (lnf.dataset.content_checksum): a file replaced or rewritten
+        # with other values later in the run (the test stage) is refused
+        self.checksum: Optional[str] = None
         self.on_mismatch = on_mismatch
         if int(batch_size) != batch_size or batch_size < 1:
             raise ValueError(f"data.batch_size must be an integer ≥ 1, got {batch_size!r}")
@@ -247,6 +250,28 @@ class SnapshotDataModule(pl.LightningDataModule):
         ensure_dataset(self.scene, self.config, self.path, on_mismatch=self.on_mismatch,
                        overwrite_other_settings=not self.explicit_path)
         self._verified = file_key()
+        checksum = content_checksum(self.path)
+        if self.checksum is not None and checksum != self.checksum:
+            raise DatasetError(f"{self.path}: the file changed while this run was using it: its content checksum was "
+                               f"{self.checksum} when the run first verified it, it is {checksum} now (the file was "
+                               f"replaced or rewritten with other values); this run's results would mix the two files. "
+                               f"Restore the file the run started with, or run the whole command again on the file as "
+                               f"it is now")
+        self.checksum = checksum
+
+    def state_dict(self) -> dict[str, Any]:
+        """Kept in checkpoints: the data file and its content checksum (:func:`lnf.dataset.content_checksum`)."""
+        return {"path": str(self.path), "checksum": self.checksum} if self.checksum else {}
+
+    def load_state_dict(self, state_dict: dict[str, Any]) -> None:
+        """A resumed checkpoint's record of its data file: a warning naming the file and both checksums when the
+        file now holds other values than the checkpoint was trained on."""
+        then = (state_dict or {}).get("checksum")
+        if then and self.checksum and then != self.checksum:
+            log.warning("%s changed since the resumed checkpoint was trained on it: its content checksum was %s, it is "
+                        "%s now; training continues on the file as it is now, and the run's results mix the two "
+                        "files (start afresh in a new output dir for results of this file alone)", self.path, then,
+                        self.checksum)
 
     def split(self, name: str) -> TrajectorySplit:
         """The whole validated split ('train', 'val', 'test') in memory, loaded once (for evaluation)."""
@@ -296,11 +321,12 @@ class SnapshotDataModule(pl.LightningDataModule):
     def describe(self) -> dict[str, Any]:
         """Data settings to store in checkpoints (enough to regenerate the same file; for trajectories written from
         arrays, the file's path and its recorded settings, which lnf.evaluate checks the file still has)."""
+        checksum = {"checksum": self.checksum} if self.checksum else {}  # once the file is ensured (prepare_data)
         if self.stored is not None:
             return {"path": str(self.path), "on_mismatch": self.on_mismatch, "explicit_path": True,
-                    "source": SOURCE_ARRAYS, "generation": dict(self.stored)}
+                    "source": SOURCE_ARRAYS, "generation": dict(self.stored), **checksum}
         return {"path": str(self.path), "on_mismatch": self.on_mismatch, "explicit_path": self.explicit_path,
-                **self.config.__dict__}
+                **self.config.__dict__, **checksum}
 
     def describe_observations(self) -> dict[str, Any]:
         """How the training observations were corrupted (kept beside :meth:`describe` in checkpoints)."""
