@@ -1,0 +1,178 @@
+"""Operator Inference (OpInf) as a non-intrusive baseline: POD + a polynomial discrete-time reduced model, per rank.
+
+    python experiments/operator_inference.py                             # the default scene, r ∈ {1, 2, 4, 8}
+    python experiments/operator_inference.py --scene elastic --ranks 2 4 8 16
+    python experiments/operator_inference.py --smoke --out /tmp/opinf   # tiny data (the test suite's)
+
+Generates (or reuses) the scene's dataset exactly as `python -m lnf.train +experiment=<scene>` does (the same
+composed `data` settings, the same file under LNF_DATA_DIR; --smoke: the studies' tiny data settings), fits
+:class:`lnf.baselines.operator_inference.OperatorInference` at each rank on the fine-grid fields and velocities
+of the training trajectories within the training horizon, chooses its form ("cA" / "cAH" / "cAHG") and regularizer on
+the validation trajectories within the horizon, and rolls it out from the test trajectories' initial snapshots
+over all samples. The test errors are lnf's own (lnf.metrics.field_metrics: relative L² field error over all
+samples, within the training horizon and after it, median over trajectories, weighted by the points' quadrature
+weights as lnf's evaluation weights them), so they compare with the `field_rel_l2/*` of lnf's runs on the same
+dataset. Writes summary.md and operator_inference.json into --out (default
+outputs/studies/operator_inference-<scene>[-smoke]).
+
+OpInf reads more than lnf does: every fine-grid point of every training sample (fields and velocities), where
+lnf learns from masked coarse observations.
+"""
+from __future__ import annotations
+
+import datetime
+import json
+import os
+import sys
+import time
+from pathlib import Path
+from typing import Any, Optional
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import studylib as S  # noqa: E402
+
+ERR = "field_rel_l2"
+
+
+def compose(study: S.Study) -> Any:
+    """The training config of the study's scene as `python -m lnf.train +experiment=<scene>` composes it (with the
+    studies' tiny data settings under --smoke)."""
+    from hydra import compose as hydra_compose, initialize_config_dir
+
+    overrides = [f"+experiment={study.scene}", *(S.SMOKE_DATA if study.mode == "smoke" else [])]
+    if study.config_dir is not None:
+        overrides.append(f"hydra.searchpath=['file://{study.config_dir}']")
+    with initialize_config_dir(str(S.CONF), version_base=None):
+        return hydra_compose("train", overrides=overrides)
+
+
+def load_data(study: S.Study) -> tuple[Any, Any, dict[str, Any]]:
+    """The scene, its dataset's data module (generated or reused as lnf.train does) and its three splits."""
+    import hydra
+
+    for key, value in S.job_environment().items():  # LNF_ROOT = the repository, an absolute LNF_DATA_DIR
+        if key in ("LNF_ROOT", "LNF_DATA_DIR"):
+            os.environ[key] = value
+    cfg = compose(study)
+    scene = study.scene_object()
+    datamodule = hydra.utils.instantiate(cfg.data, scene=scene, _convert_="all")
+    print(f"[operator_inference] dataset {datamodule.path} (generated if absent)", flush=True)
+    datamodule.prepare_data()
+    return scene, datamodule, {name: datamodule.split(name) for name in ("train", "val", "test")}
+
+
+def split_controls(scene: Any, split: Any) -> Optional[np.ndarray]:
+    """Per-trajectory loads (n, c): stored ones, else the scene's from the initial states (as lnf's evaluation)."""
+    if split.controls is not None:
+        return np.asarray(split.controls, dtype=np.float64)
+    if split.states.shape[-1] > 0:
+        controls = scene.controls(np.asarray(split.states[:, 0]))
+        return None if controls is None else np.asarray(controls, dtype=np.float64)
+    return None
+
+
+def mass_weights(scene: Any, split: Any) -> np.ndarray:
+    """Weights of the POD's inner product on the fine points: quadrature weight (equal if the file has none) ×
+    the scene's mass density there."""
+    import torch
+
+    points = np.asarray(split.fine_points)
+    w = np.ones(len(points)) if split.weights is None else np.asarray(split.weights, dtype=np.float64)
+    try:
+        density = scene.density(torch.as_tensor(points, dtype=torch.float64)).detach().cpu().numpy().reshape(-1)
+    except (NotImplementedError, AttributeError, ValueError, TypeError):
+        return w
+    return w * density if density.shape == w.shape and np.all(np.isfinite(density)) and np.all(density > 0) else w
+
+
+def evaluate(scene: Any, splits: dict[str, Any], rank: int) -> dict[str, Any]:
+    """Fit at `rank`, roll out the test split, score it with lnf.metrics.field_metrics."""
+    from lnf import metrics as M
+    from lnf.baselines.operator_inference import OperatorInference
+
+    train, val, test = splits["train"], splits["val"], splits["test"]
+    T, K = len(test.times), train.train_times
+    metric_weights = None if test.weights is None else np.asarray(test.weights, dtype=np.float64)
+    model = OperatorInference(rank).fit(train.fields, train.velocities, K, val.fields, val.velocities,
+                                        point_weights=mass_weights(scene, train), metric_weights=metric_weights,
+                                        controls=split_controls(scene, train), val_controls=split_controls(scene, val))
+    pred = model.predict(test.fields[:, 0], test.velocities[:, 0], T, controls=split_controls(scene, test))
+    weights = np.full(test.fields.shape[2], 1.0 / test.fields.shape[2]) if metric_weights is None else \
+        metric_weights / metric_weights.sum()
+    times = np.asarray(test.times, dtype=np.float64)
+    horizon = float(times[K]) if K < T else float(times[-1])  # as lnf's evaluation callback sets it
+    true = np.asarray(test.fields, dtype=np.float64)
+    with np.errstate(invalid="ignore", over="ignore"):
+        out: dict[str, Any] = dict(M.field_metrics(ERR, pred.fields, true, weights, times, horizon))
+        out.update(M.field_metrics("velocity_rel_l2", pred.velocities, np.asarray(test.velocities, dtype=np.float64),
+                                   weights, times, horizon))
+        proj_f, _ = model.decode(model.encode(test.fields, test.velocities))  # the basis' best: POD projection
+        out.update(M.field_metrics("projection_rel_l2", proj_f, true, weights, times, horizon))
+    record = model.describe()
+    out.update(method="OpInf", rank=rank, operators=record["operators"], regularizer=record["regularizer"],
+               val_error=record["val_error"], velocity_weight=record["velocity_weight"],
+               diverged=int(pred.diverged.sum()), trajectories=int(len(pred.diverged)),
+               fit_seconds=record["fit_seconds"], basis_seconds=record["basis_seconds"],
+               rollout_seconds_per_trajectory=float(np.mean(pred.rollout_seconds)),
+               candidates=record["candidates"])
+    return out
+
+
+COLUMNS = [("method", "method"), ("rank", "rank r"), ("operators", "operators"), ("regularizer", "regularizer λ"),
+           (f"{ERR}/all/median", "field error, all"), (f"{ERR}/in_horizon/median", "in horizon"),
+           (f"{ERR}/extrapolation/median", "after horizon"), ("projection_rel_l2/all/median", "POD projection, all"),
+           ("diverged", "diverged"), ("fit_seconds", "fit [s]"), ("basis_seconds", "of which POD [s]"),
+           ("rollout_seconds_per_trajectory", "rollout [s/traj]")]
+
+
+def main(argv=None) -> None:
+    def extra(p):
+        p.add_argument("--ranks", type=int, nargs="+", default=[1, 2, 4, 8], help="POD ranks r (default 1 2 4 8)")
+
+    study, args = S.parse_args("operator_inference", __doc__, argv, extra)
+    if args.out is None:  # outputs/studies/operator_inference-<scene>[-smoke], whatever the scene
+        study.out = S.ROOT / "outputs" / "studies" / "-".join(
+            ["operator_inference", study.scene] + (["smoke"] if study.mode == "smoke" else []))
+    bad = [r for r in args.ranks if r < 1]
+    if bad:
+        raise SystemExit(f"--ranks: a rank must be an integer ≥ 1, got {' '.join(map(str, bad))}")
+    scene, datamodule, splits = load_data(study)
+    train = splits["train"]
+    print(f"[operator_inference] {study.scene}: {len(train)}/{len(splits['val'])}/{len(splits['test'])} train/val/test "
+          f"trajectories, {len(train.times)} samples (the first {train.train_times} for training), "
+          f"{train.fields.shape[2]} fine points", flush=True)
+    rows = []
+    for rank in args.ranks:
+        t0 = time.perf_counter()
+        try:
+            row = evaluate(scene, splits, rank)
+        except ValueError as err:  # a rank the training snapshots cannot give
+            raise SystemExit(f"--ranks {rank}: {err}") from err
+        rows.append(row)
+        print(f"[operator_inference] r = {rank}: {row['operators']}, λ = {row['regularizer']:.3g}, field error "
+              f"{S.fmt(row[f'{ERR}/all/median'])} (all), {S.fmt(row[f'{ERR}/in_horizon/median'])} (in horizon), "
+              f"{row['diverged']} diverged; fit {row['fit_seconds']:.3g} s ({time.perf_counter() - t0:.1f} s in all)",
+              flush=True)
+    given = f" --ranks {' '.join(map(str, args.ranks))}" if args.ranks != [1, 2, 4, 8] else ""
+    out_arg = "" if args.out is None else f" --out {args.out}"
+    command = f"{study.command()}{given}{out_arg}"
+    date = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+    text = (f"Machine: {study.machine()}. Command: `{command}`. Date: {date}.\n\n"
+            f"# Operator Inference ({study.scene}, dataset {datamodule.path.name})\n\n"
+            f"POD of [q, σ q̇] on the {train.fields.shape[2]} fine points of the {len(train)} training trajectories "
+            f"(samples k < {train.train_times}), a discrete-time model s_(k+1) = c + A s_k "
+            f"(+ H s_k ⊗ s_k + G s_k ⊗ s_k ⊗ s_k) fitted by Tikhonov least squares (opinf); form (cA, cAH, cAHG) and "
+            f"λ chosen on the {len(splits['val'])} validation trajectories within the horizon. Test errors: "
+            f"lnf.metrics.field_metrics (relative L², median over {len(splits['test'])} trajectories), comparable with lnf's `field_rel_l2/*` on this dataset.\n\n"
+            + S.markdown_table(rows, COLUMNS))
+    S.write_text_atomic(study.out / "summary.md", text)
+    payload = {"scene": study.scene, "mode": study.mode, "command": command, "machine": study.machine(),
+               "date": date, "dataset": str(datamodule.path), "rows": rows}
+    S.write_text_atomic(study.out / "operator_inference.json", json.dumps(payload, indent=2, default=float) + "\n")
+    study.finish([study.out / "summary.md", study.out / "operator_inference.json"])
+
+
+if __name__ == "__main__":
+    main()
