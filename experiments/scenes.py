@@ -43,6 +43,7 @@ from __future__ import annotations
 import argparse
 import copy
 import json
+import os
 import platform
 import sys
 import time
@@ -61,7 +62,8 @@ import studylib  # noqa: E402
 from lnf.baselines.latent_mlp import LatentMLPDynamics  # noqa: E402
 from lnf.baselines.pod import PODGalerkin  # noqa: E402
 from lnf import metrics as M  # noqa: E402
-from lnf.evaluate import ensure_code_range  # noqa: E402
+from lnf.dataset import SOURCE_ARRAYS, DatasetConfig  # noqa: E402
+from lnf.evaluate import ensure_code_range, evaluation_data  # noqa: E402
 from lnf.evaluation import evaluate_rollouts, long_horizon_energy, trajectory_controls  # noqa: E402
 from lnf.model import load  # noqa: E402
 from lnf.plotting import _subscript, save_figure  # noqa: E402
@@ -71,10 +73,19 @@ from lnf.training.datamodule import SnapshotDataModule  # noqa: E402
 
 
 def datamodule_of(model: Any) -> SnapshotDataModule:
-    """The checkpoint's own dataset (regenerated if missing)."""
+    """The checkpoint's own dataset (generated if missing). A checkpoint's data path outside the data folder is
+    only read, as lnf.evaluate reads it (:func:`lnf.evaluate.evaluation_data`): nothing of a user's is overwritten."""
     data = dict(model.checkpoint.get("data") or {})
     if not data:
         raise SystemExit("the checkpoint records no data settings")
+    data.pop("checksum", None)
+    if data.get("source") != SOURCE_ARRAYS:
+        settings = {k: v for k, v in data.items() if k not in ("path", "on_mismatch", "explicit_path")}
+        data_dir = Path(os.environ.get("LNF_DATA_DIR") or Path(os.environ.get("LNF_ROOT", ROOT)) / "data")
+        data["path"] = str(evaluation_data(model.scene, DatasetConfig.from_mapping(settings), Path(data["path"]),
+                                           data_dir.resolve(), data.get("on_mismatch", "regenerate"),
+                                           bool(data.get("explicit_path", False))))
+        data["explicit_path"] = True  # the file ensured above: the datamodule reads it, never writes it
     dm = SnapshotDataModule(scene=model.scene, **data)
     dm.prepare_data()
     return dm

@@ -24,7 +24,7 @@ from lnf.baselines.latent_mlp import latent_trajectories
 from lnf.allocator import keep_freed_memory
 from lnf.config_keys import check_known_keys
 from lnf.model import dropped_settings, target_class
-from lnf.run_lock import run_folder_lock
+from lnf.run_lock import EVALUATION_RESULTS, run_folder_lock, set_aside
 from lnf.scenes.base import Scene
 from lnf.scenes.check import SceneCheckError, check_scene
 from lnf.training.callbacks import RolloutEvaluationCallback, write_json_atomic
@@ -164,6 +164,12 @@ def check_resumed_settings(ckpt: dict[str, Any], path: Path, hparams: dict[str, 
 
 def check_settings(cfg: DictConfig, module: LNFModule) -> None:
     """Settings that would otherwise fail only after training: build what the test phase needs now."""
+    data = cfg.get("data") or {}
+    n_times, train_times = data.get("n_times"), data.get("train_times")
+    if isinstance(n_times, int) and isinstance(train_times, int) and train_times >= n_times:
+        raise ValueError(f"data.train_times={train_times} must be below data.n_times={n_times}: the samples after "
+                         f"the training horizon are the extrapolation test; with none, its metrics would score "
+                         f"trained samples")
     try:
         module.model.quadrature_rule.build_for(module.model.scene)
     except (TypeError, ValueError) as err:
@@ -261,6 +267,9 @@ def _train(cfg: DictConfig) -> dict[str, float]:
     evaluation = RolloutEvaluationCallback(integrator=_container(cfg.integrator), output_dir=str(output_dir),
                                            **_container(cfg.evaluation))
     ckpt_file, ckpt = resume_checkpoint(cfg.get("ckpt_path"), output_dir)
+    if ckpt_file is None or ckpt_file.resolve().parent not in ((output_dir / "checkpoints").resolve(),
+                                                               output_dir.resolve()):
+        set_aside(output_dir, EVALUATION_RESULTS)  # a fresh run: an earlier run's results here are kept, not overwritten
     if ckpt is not None:
         check_resumed_scene(ckpt, ckpt_file, module.hparams["scene"], bool(cfg.get("resume_other_scene", False)))
         check_resumed_settings(ckpt, ckpt_file, dict(module.hparams), bool(cfg.get("resume_other_settings", False)))

@@ -657,3 +657,40 @@ def test_pareto_leaves_out_quadrature_rules_too_large_for_the_body(capsys):
     assert pareto._within_points(Study(2), "4,8,12,16,32", "orders") == "4,8,12,16,32"
     assert pareto._within_points(Study(3), "4,8,12,16,32", "orders") == "4,8,12,16"
     assert "orders 32 left out" in capsys.readouterr().out
+
+
+def test_scenes_script_never_writes_a_checkpoints_data_path_outside_the_data_folder(tmp_path, monkeypatch):
+    """experiments/scenes.py regenerated (or replaced) the file a checkpoint's data.path named, as lnf.evaluate once
+    did: outside the data folder it is only read, and other settings are generated into the data folder."""
+    import hashlib
+    import shutil
+
+    import torch
+
+    sys.path[:0] = [str(ROOT / "experiments")]
+    import scenes
+    from helpers import TINY, compose_config
+
+    import lnf
+    from lnf.train import train
+
+    cfg = compose_config("train", ["+experiment=pendulum", "trainer=smoke", "trainer.max_epochs=1", "logger=csv",
+                                   *TINY, "evaluation.figures=0", "evaluation.every_n_epochs=0"], tmp_path / "t")
+    train(cfg)
+    ckpt_path = Path(cfg.paths.output_dir) / "checkpoints" / "last.ckpt"
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    data_file = Path(torch.load(ckpt_path, weights_only=True)["hyper_parameters"]["data"]["path"])
+    shutil.copy(data_file, elsewhere / "mydata.h5")
+    (elsewhere / "notes.txt").write_text("a user's notes")
+    monkeypatch.setenv("LNF_DATA_DIR", str(tmp_path / "t" / "data"))
+    for name, extra in [("mydata.h5", {"n_train": 4}), ("notes.txt", {})]:
+        ckpt = torch.load(ckpt_path, weights_only=True)
+        ckpt["hyper_parameters"]["data"].update(path=str(elsewhere / name), **extra)
+        crafted = tmp_path / f"crafted-{name}.ckpt"
+        torch.save(ckpt, crafted)
+        before = hashlib.md5((elsewhere / name).read_bytes()).hexdigest()
+        dm = scenes.datamodule_of(lnf.load(crafted))
+        assert hashlib.md5((elsewhere / name).read_bytes()).hexdigest() == before
+        assert Path(dm.path).parent == tmp_path / "t" / "data"
+    assert sorted(p.name for p in elsewhere.iterdir()) == ["mydata.h5", "notes.txt"]

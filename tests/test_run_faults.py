@@ -228,14 +228,17 @@ def test_a_resumed_checkpoint_cannot_make_training_delete_files_outside_its_fold
     out = _out(tmp_path)
     (out / "metrics.json").unlink()
     victim, notes = tmp_path / "victim.txt", out / "checkpoints" / "my_notes.txt"
+    mine = out / "checkpoints" / "mine.ckpt"  # a user's own checkpoint beside the run's: not the callback's to delete
     victim.write_text("a user's file")
     notes.write_text("a user's notes beside the checkpoints")
+    mine.write_text("a user's checkpoint")
     ckpt = torch.load(out / "checkpoints" / "last.ckpt", weights_only=True)
     for key, state in ckpt["callbacks"].items():
         if key.startswith("ModelCheckpoint"):
             outside = str(out / "checkpoints" / ".." / ".." / "victim.txt")
             state.update(dirpath=str(out / "checkpoints"), best_model_path=outside, kth_best_model_path=str(notes),
-                         last_model_path=outside, best_k_models={outside: torch.tensor(1e9), str(notes): torch.tensor(1e9)},
+                         last_model_path=outside, best_k_models={outside: torch.tensor(1e9), str(notes): torch.tensor(1e9),
+                                                                 str(mine): torch.tensor(1e9)},
                          best_model_score=torch.tensor(1e9), kth_value=torch.tensor(1e9))
     for name in ("last.ckpt", *[p.name for p in (out / "checkpoints").glob("epoch*.ckpt")]):
         torch.save(ckpt, out / "checkpoints" / name)
@@ -243,4 +246,25 @@ def test_a_resumed_checkpoint_cannot_make_training_delete_files_outside_its_fold
         metrics = train(_cfg(tmp_path, "trainer.max_epochs=3"))
     assert metrics["epochs_run"] == 3
     assert victim.read_text() == "a user's file" and notes.read_text() == "a user's notes beside the checkpoints"
-    assert "names files outside" in caplog.text and "victim.txt" in caplog.text
+    assert mine.read_text() == "a user's checkpoint"
+    assert "not this callback's own checkpoints" in caplog.text and "victim.txt" in caplog.text
+
+
+def test_a_fresh_run_in_a_folder_with_earlier_results_keeps_them(tmp_path):
+    """lnf.train in a folder holding an earlier evaluation's metrics.json (no checkpoint to resume) overwrote it."""
+    out = _out(tmp_path)
+    out.mkdir(parents=True)
+    (out / "metrics.json").write_text('{"an earlier": "evaluation"}')
+    (out / "run.json").write_text("not json, a user's notes")
+    train(_cfg(tmp_path, "trainer.max_epochs=1"))
+    (previous,) = (out / "previous").iterdir()
+    assert json.loads((previous / "metrics.json").read_text()) == {"an earlier": "evaluation"}
+    assert (previous / "run.json").read_text() == "not json, a user's notes"
+    assert "epochs_run" in json.loads((out / "metrics.json").read_text())
+
+
+def test_no_samples_after_the_training_horizon_is_refused_before_any_data(tmp_path):
+    """data.train_times = data.n_times scored trained samples as 'extrapolation' (and lnf.evaluate crashed)."""
+    with pytest.raises(ValueError, match=r"data\.train_times=20 must be below data\.n_times=20"):
+        train(_cfg(tmp_path, "data.train_times=20"))
+    assert not (tmp_path / "data").exists()

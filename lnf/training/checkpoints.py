@@ -11,6 +11,7 @@ from __future__ import annotations
 import errno
 import logging
 import os
+import re
 from pathlib import Path
 from typing import Any, Optional
 
@@ -136,20 +137,31 @@ def resume_checkpoint(ckpt_path: Optional[str], output_dir: Path) -> tuple[Optio
 PATH_KEYS = ("best_model_path", "kth_best_model_path", "last_model_path")
 
 
-def confined_state(state: dict[str, Any], dirpath: Any) -> dict[str, Any]:
-    """A ModelCheckpoint's restored state with every file it names inside its own `dirpath` and named ``*.ckpt``.
+def checkpoint_names(callback: ModelCheckpoint) -> "re.Pattern[str]":
+    """The file names `callback` itself writes: its ``filename`` template (each ``{...}`` any text; Lightning's
+    ``epoch=…-step=…`` when unset) with an optional ``-vN`` version, or ``last``, then ``.ckpt``."""
+    template = callback.filename or "{epoch}-{step}"
+    body = ".+?".join(re.escape(part) for part in re.split(r"\{[^}]*\}", template))
+    last = re.escape(callback.CHECKPOINT_NAME_LAST)
+    return re.compile(rf"(?:{body}|{last})(?:-v\d+)?{re.escape(callback.FILE_EXTENSION)}")
+
+
+def confined_state(state: dict[str, Any], dirpath: Any, names: "re.Pattern[str] | None" = None) -> dict[str, Any]:
+    """A ModelCheckpoint's restored state with every file it names inside its own `dirpath`, and (given `names`,
+    see :func:`checkpoint_names`) named as the callback names its own files.
 
     ModelCheckpoint deletes the files its state lists when it keeps its top k; a checkpoint's state is the file's
-    to say, so a crafted one could name any file (``../../thesis.txt``) for deletion on resume. Paths outside the
-    folder (after resolving ``..`` and links) are dropped, each named in a warning."""
+    to say, so a crafted one could name any file (``../../thesis.txt``, a user's ``mine.ckpt``) for deletion on
+    resume. Any other path (after resolving ``..`` and links) is dropped, each named in a warning."""
     state = dict(state)
     root = Path(dirpath).resolve() if dirpath else None
+    names = names or re.compile(r".+\.ckpt")
 
     def inside(path: Any) -> bool:
         if not path or root is None:
             return False
         resolved = Path(str(path)).resolve()
-        return resolved.suffix == ".ckpt" and resolved.parent == root
+        return resolved.parent == root and bool(names.fullmatch(resolved.name))
 
     dropped = [str(state[k]) for k in PATH_KEYS if state.get(k) and not inside(state[k])]
     for key in PATH_KEYS:
@@ -160,8 +172,8 @@ def confined_state(state: dict[str, Any], dirpath: Any) -> dict[str, Any]:
         dropped += [str(p) for p in state["best_k_models"] if p not in kept]
         state["best_k_models"] = kept
     if dropped:
-        log.warning("the resumed checkpoint's ModelCheckpoint state names files outside %s (%s): ignored, and never "
-                    "deleted", root, ", ".join(sorted(set(dropped))))
+        log.warning("the resumed checkpoint's ModelCheckpoint state names files that are not this callback's own "
+                    "checkpoints in %s (%s): ignored, and never deleted", root, ", ".join(sorted(set(dropped))))
     return state
 
 
@@ -171,7 +183,7 @@ def confine_restored_state(callback: ModelCheckpoint) -> ModelCheckpoint:
     restore = callback.load_state_dict
 
     def load_state_dict(state: dict[str, Any]) -> None:
-        restore(confined_state(state, callback.dirpath))
+        restore(confined_state(state, callback.dirpath, checkpoint_names(callback)))
 
     callback.load_state_dict = load_state_dict  # type: ignore[method-assign]
     return callback

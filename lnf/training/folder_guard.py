@@ -16,6 +16,7 @@ from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, read_write
 
 from lnf.run_lock import EVALUATION_RESULTS, RunFolderBusyError, run_folder_lock, set_aside
+from lnf.training.checkpoints import candidates
 
 
 class RunFolderGuard(Callback):
@@ -29,7 +30,9 @@ class RunFolderGuard(Callback):
         command = "python -m lnf.evaluate" if "split" in config else "python -m lnf.train"
         try:
             self._held.enter_context(run_folder_lock(folder, command))
-            if "split" in config:  # an evaluation: the folder's earlier run (a training's, say) keeps its own files
+            # an evaluation, or a training that starts afresh (no checkpoint to resume): the folder's earlier run
+            # keeps its own files (a resumed training is the same run: its .hydra/ is rewritten, run.json appended)
+            if "split" in config or not candidates(folder):
                 set_aside(folder, (".hydra", *EVALUATION_RESULTS))
         except RunFolderBusyError:
             # Hydra turns a callback's exception into a warning and runs the job anyway: keep it from writing
