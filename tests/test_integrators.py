@@ -92,6 +92,22 @@ def test_newton_solves_midpoint_steps_the_fixed_point_iteration_cannot(dyn):
     assert np.abs(energy - energy[:, :1]).max() < 0.05 * energy[:, 0].max()  # bounded, not drifting
 
 
+def test_the_default_midpoint_carries_a_stiff_step_and_stops_wasting_fixed_point_iterations(dyn):
+    """By default (newton=True) a step the fixed-point iteration cannot take goes to Newton's method; once a rollout
+    has needed it, later solves try 3 fixed-point iterations before Newton instead of max_iter = 50."""
+    q0 = torch.tensor([[1.2], [0.3]], dtype=torch.float64)
+    v0 = torch.tensor([[0.0], [1.0]], dtype=torch.float64)
+    solver = ImplicitMidpoint(order=4)
+    assert solver.newton
+    traj = solver.integrate(dyn, q0, v0, 0.5, 40, on_divergence="mark")
+    assert not traj.diverged.any() and solver.newton_solves > 0
+    first = next(i for i, n in enumerate(solver.iterations) if n >= 10)  # the first solve that failed
+    assert max(solver.iterations[first + 1:]) <= 3
+    # a rollout that needs no Newton keeps the plain fixed-point iteration (the same numbers as newton=False)
+    easy = [ImplicitMidpoint(order=4, newton=flag).integrate(dyn, q0, v0, 0.05, 40) for flag in (True, False)]
+    assert torch.equal(easy[0].q, easy[1].q) and torch.equal(easy[0].v, easy[1].v)
+
+
 def test_settings_of_another_integrator_are_a_clear_error():
     """+experiment=<scene> sets integrator.order for the midpoint rule; RK4 must say how to drop it."""
     from lnf.integrators import get_integrator
