@@ -493,20 +493,29 @@ def _attribute_digest(value: Any) -> str:
     return f"{CHECKSUM_ALGORITHM}:{hashlib.blake2b(text.encode()).hexdigest()}"
 
 
+def _checksums_attribute(f: h5py.File, path: Path, name: str) -> Optional[dict[str, Any]]:
+    """The root attribute `name`, a JSON object of checksums (None when the file has none: an older file);
+    anything else → _Damaged naming the file and the attribute."""
+    raw = f.attrs.get(name)
+    if raw is None:
+        return None
+    try:
+        value = json.loads(raw.decode() if isinstance(raw, bytes) else str(raw))
+        if not isinstance(value, dict):
+            raise ValueError("not a JSON object")
+    except ValueError as exc:
+        raise _Damaged(f"{path}: root attribute {name} is not a JSON object of checksums ({exc}); the file is "
+                       f"corrupt") from exc
+    return value
+
+
 def _verify_attributes(f: h5py.File, path: Path) -> None:
     """The root attributes (format_version, lnf_scene, lnf_generation, scene_name) against the checksums stored
     at write time in ``lnf_attributes_checksum``; a file written before that attribute existed is not checked.
     A changed attribute → _Damaged naming the file and the attribute."""
-    raw = f.attrs.get(ATTRIBUTES_CHECKSUM_ATTR)
-    if raw is None:
+    stored = _checksums_attribute(f, path, ATTRIBUTES_CHECKSUM_ATTR)
+    if stored is None:
         return
-    try:
-        stored = json.loads(raw.decode() if isinstance(raw, bytes) else str(raw))
-        if not isinstance(stored, dict):
-            raise ValueError("not a JSON object")
-    except ValueError as exc:
-        raise _Damaged(f"{path}: root attribute {ATTRIBUTES_CHECKSUM_ATTR} is not a JSON object of checksums "
-                       f"({exc}); the file is corrupt") from exc
     for name in ROOT_ATTRIBUTES + tuple(n for n in (MANIFEST_ATTR,) if n in stored):
         digest = _attribute_digest(_attribute_value(f, name))
         if str(stored.get(name)) != digest:
@@ -566,16 +575,9 @@ def _check_manifest(f: h5py.File, path: Path, splits: tuple[str, ...] = SPLITS) 
     one listed is present and carries the checksum listed for its own path (checked against its values by
     :func:`_verify`, so a dataset or group moved, swapped or replaced is found), and none is added. A file written
     before the manifest existed is not checked. Any difference → _Damaged naming the file and the dataset."""
-    raw = f.attrs.get(MANIFEST_ATTR)
-    if raw is None:
+    manifest = _checksums_attribute(f, path, MANIFEST_ATTR)
+    if manifest is None:
         return
-    try:
-        manifest = json.loads(raw.decode() if isinstance(raw, bytes) else str(raw))
-        if not isinstance(manifest, dict):
-            raise ValueError("not a JSON object")
-    except ValueError as exc:
-        raise _Damaged(f"{path}: root attribute {MANIFEST_ATTR} is not a JSON object of checksums ({exc}); the file "
-                       f"is corrupt") from exc
 
     def wanted(key: str) -> bool:
         head = key.split("/")[0]

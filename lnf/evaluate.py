@@ -31,7 +31,7 @@ from lnf.trajectories import TIME_TOLERANCE
 from lnf.trust import trusted_modules
 from lnf.training.callbacks import save_evaluation_figures, stored_reference, write_json_atomic
 from lnf.training.console import quiet_console
-from lnf.utils import check_numbers, print_summary, run_metadata
+from lnf.utils import is_number, check_numbers, print_summary, run_metadata
 
 log = logging.getLogger("lnf.evaluate")
 
@@ -111,17 +111,13 @@ def ensure_code_range(model: Any, path: Path, scene: Any, dcfg: DatasetConfig) -
 GRID_KINDS = ("stored", "uniform", "random")
 
 
-def _is_number(value: Any) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool)
-
-
 def _number(cfg: DictConfig, key: str, expected: str, positive: bool, null: str = "", unit: str = "s") -> None:
     """`key` must be a finite number (> 0 if `positive`, else ≥ 0) [`unit`], or null when `null` says what null
     means."""
     value = OmegaConf.select(cfg, key)
     if value is None and null:
         return
-    if _is_number(value) and math.isfinite(value) and (value > 0 if positive else value >= 0):
+    if is_number(value) and math.isfinite(value) and (value > 0 if positive else value >= 0):
         return
     raise ValueError(f"{key} must be a finite number {'>' if positive else '≥'} 0 [{unit}] ({expected})"
                      f"{' or null (' + null + ')' if null else ''}, got {value!r}")
@@ -132,7 +128,7 @@ def _integer(cfg: DictConfig, key: str, minimum: int, expected: str, null: str =
     value = OmegaConf.select(cfg, key)
     if value is None and null:
         return
-    if _is_number(value) and math.isfinite(value) and value == int(value) and value >= minimum:
+    if is_number(value) and math.isfinite(value) and value == int(value) and value >= minimum:
         return
     raise ValueError(f"{key} must be an integer ≥ {minimum} ({expected}){' or null (' + null + ')' if null else ''}, "
                      f"got {value!r}")
@@ -144,10 +140,7 @@ def rollout_frames(cfg: DictConfig, dt: float, horizon: float) -> int:
     :data:`lnf.trajectories.TIME_TOLERANCE` where one is the data's) and ≥ 2, or
     a ValueError names both and the horizons that work. An explicit train_horizon beyond the horizon is refused
     too: nothing would come after it."""
-    def shown(key: str, value: float) -> str:
-        return f"{key}={_shown(cfg.get(key))}" + (f" (the data’s: {value:g} s)" if cfg.get(key) is None else " [s]")
-
-    span = f"{shown('horizon', horizon)} at {shown('dt', dt)}"
+    span = _span(cfg, dt, horizon)
     ratio = horizon / dt
     frames = int(round(ratio))
     # a data's times are uniform to TIME_TOLERANCE (a user's arrays); two settings, to rounding
@@ -314,7 +307,16 @@ def _shown(value: Any) -> str:
     """A setting as it would be typed: null, 1e+09, 0.05, 64."""
     if value is None:
         return "null"
-    return f"{value:g}" if _is_number(value) else str(value)
+    return f"{value:g}" if is_number(value) else str(value)
+
+
+def _span(cfg: DictConfig, dt: Optional[float], horizon: Optional[float]) -> str:
+    """"horizon=… at dt=…" as set, each null one with the data's value where known: what a refusal names."""
+    def shown(key: str, value: Optional[float]) -> str:
+        data = f" (the data’s: {value:g} s)" if cfg.get(key) is None and value else " [s]"
+        return f"{key}={_shown(cfg.get(key))}{data}"
+
+    return f"{shown('horizon', horizon)} at {shown('dt', dt)}"
 
 
 def check_budget(cfg: DictConfig, cost: EvaluationCost, dt: Optional[float], horizon: Optional[float]) -> None:
@@ -323,10 +325,7 @@ def check_budget(cfg: DictConfig, cost: EvaluationCost, dt: Optional[float], hor
     naming the setting, its value, the estimate, the limit and what to change."""
     k = cost.substeps
     max_steps = cfg.get("max_steps")
-    span = (f"horizon={_shown(cfg.get('horizon'))}"
-            f"{f' (the data’s: {horizon:g} s)' if cfg.get('horizon') is None and horizon else ' [s]'} at "
-            f"dt={_shown(cfg.get('dt'))}"
-            f"{f' (the data’s: {dt:g} s)' if cfg.get('dt') is None and dt else ' [s]'}")
+    span = _span(cfg, dt, horizon)
     if max_steps is not None and cost.rollout_steps > int(max_steps):
         raise ValueError(f"{span} is {cost.frames} frames: with integrator.substeps={k} the rollout takes "
                          f"{cost.rollout_steps:.4g} integration steps per trajectory, over max_steps={max_steps} (the "

@@ -67,14 +67,19 @@ def build_loggers(cfg: DictConfig, output_dir: Path, resume: bool = False) -> li
     return loggers
 
 
+def _differences(group: str, saved: dict[str, Any], config: dict[str, Any], keys: set[str]) -> list[str]:
+    """"group.key: checkpoint …, config …" for each of `keys` where a checkpoint's spec and the config differ."""
+    return [f"{group}.{k}: checkpoint {saved.get(k)!r}, config {config.get(k)!r}" for k in sorted(keys)
+            if saved.get(k) != config.get(k)]
+
+
 def check_resumed_scene(ckpt: dict[str, Any], path: Path, scene_spec: dict[str, Any], allow: bool) -> None:
     """A checkpoint of another scene (or other scene parameters) is refused unless ``resume_other_scene=true``:
     equal parameter shapes would let it load silently."""
     saved = (ckpt.get("hyper_parameters") or {}).get("scene")
     if saved is None or saved == scene_spec:
         return
-    keys = sorted(k for k in set(saved) | set(scene_spec) if saved.get(k) != scene_spec.get(k))
-    diffs = "; ".join(f"scene.{k}: checkpoint {saved.get(k)!r}, config {scene_spec.get(k)!r}" for k in keys)
+    diffs = "; ".join(_differences("scene", saved, scene_spec, set(saved) | set(scene_spec)))
     if not allow:
         raise ValueError(f"{path} was trained on another scene ({diffs}); resume it with its own scene, start "
                          f"afresh in a new output dir, or set resume_other_scene=true to fine-tune it on this one")
@@ -149,8 +154,7 @@ def check_resumed_settings(ckpt: dict[str, Any], path: Path, hparams: dict[str, 
         if not isinstance(old, dict) or not isinstance(new, dict):
             continue
         skip = UNCOMPARED_DATA if group == "data" else ()
-        diffs += [f"{group}.{k}: checkpoint {old[k]!r}, config {new.get(k)!r}" for k in sorted(old)
-                  if k not in skip and new.get(k) != old[k]]
+        diffs += _differences(group, old, new, set(old) - set(skip))
     if not diffs:
         return
     if not allow:

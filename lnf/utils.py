@@ -80,7 +80,8 @@ NUMBER_RULES: dict[str, tuple[str, float, Optional[float], str]] = {
 }
 
 
-def _is_number(value: Any) -> bool:
+def is_number(value: Any) -> bool:
+    """An int or float, not a bool (a YAML true is no number)."""
     return isinstance(value, (int, float)) and not isinstance(value, bool)
 
 
@@ -88,17 +89,17 @@ def number_problem(key: str, value: Any, rule: Optional[tuple] = None) -> Option
     """What is wrong with the setting `key` = `value` under `rule` (see :data:`NUMBER_RULES`; None: it must only be
     finite if it is a number), or None if nothing is."""
     if rule is None:
-        if _is_number(value) and not math.isfinite(value):
+        if is_number(value) and not math.isfinite(value):
             return f"{key} must be a finite number, got {value!r}"
         return None
     kind, low, high, what = rule
     low_s, high_s = (str(int(x)) if x is not None and float(x).is_integer() else f"{x}" for x in (low, high))
     if kind == "int":
-        ok = _is_number(value) and math.isfinite(value) and value == int(value) and low <= value \
+        ok = is_number(value) and math.isfinite(value) and value == int(value) and low <= value \
             and (high is None or value <= high)
         expected = f"an integer ≥ {low_s}" + (f" and ≤ {high_s}" if high is not None else "")
     else:
-        ok = _is_number(value) and math.isfinite(value) and (value > low if kind == ">" else value >= low) \
+        ok = is_number(value) and math.isfinite(value) and (value > low if kind == ">" else value >= low) \
             and (high is None or value <= high)
         expected = f"a finite number {kind} {low_s}" + (f" and ≤ {high_s}" if high is not None else "")
     return None if ok else f"{key} must be {expected} ({what}), got {value!r}"
