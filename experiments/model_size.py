@@ -18,6 +18,7 @@ from typing import Optional
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+import operator_inference as OI  # noqa: E402
 import studylib as S  # noqa: E402
 
 ERR = "field_rel_l2/all/median"
@@ -42,12 +43,15 @@ def plot(study: S.Study, rows: list[dict], others: list[dict], target: float, ch
     import matplotlib.pyplot as plt
 
     fig, (ax, ax2) = plt.subplots(1, 2, figsize=(12, 5.0), layout="constrained", sharey=True)
-    pod = sorted((r for r in others if r["method"] == "pod"), key=lambda r: int(r["model.latent_dim"]))
-    # diverged runs (inf error) are drawn at 10 and marked ×
-    S.plot_marking_failures(ax2, np.array([int(r["model.latent_dim"]) for r in pod]),
-                            np.array([float(r[ERR]) for r in pod]), np.zeros(len(pod), bool),
-                            marker=S.MARKERS["pod"], color=S.COLORS["pod"], ls=S.LINESTYLES["pod"], lw=1.6,
-                            label=S.LABELS["pod"])
+    pod = sorted((r for r in others if r["method"] in ("pod", "opinf", "opinf_observed")),
+                 key=lambda r: int(r["model.latent_dim"]))
+    for m in ("pod", "opinf", "opinf_observed"):  # diverged runs (inf error) are drawn at 10 and marked ×
+        mine = [r for r in pod if r["method"] == m]
+        if mine:
+            S.plot_marking_failures(ax2, np.array([int(r["model.latent_dim"]) for r in mine]),
+                                    np.array([float(r[ERR]) for r in mine]), np.zeros(len(mine), bool),
+                                    marker=S.MARKERS[m], color=S.COLORS[m], ls=S.LINESTYLES[m], lw=1.6,
+                                    label=S.LABELS[m])
     if chosen:  # under the baselines' lines (wide, light): a baseline at the same error stays visible on top
         ax2.axhline(float(chosen[ERR]), color=S.COLORS["lnf"], ls="-", lw=3.0, alpha=0.45, zorder=1,
                     label=f"LNF (ours), choice (d = {chosen['model.latent_dim']}, width {chosen['model.width']})")
@@ -58,7 +62,7 @@ def plot(study: S.Study, rows: list[dict], others: list[dict], target: float, ch
                                                   if m == "latent_mlp" else " (64² grid)"))
     ax2.axhline(target, color="k", ls="--", lw=1.0, label=f"target {target:g}")
     ax2.set_yscale("log")
-    ax2.set_xlabel("latent dimension d (POD: number of modes k)")
+    ax2.set_xlabel("latent dimension d (POD: number of modes k; OpInf: rank r = 2d, the same state dimension)")
     ax2.set_xticks(sorted({int(r["model.latent_dim"]) for r in pod} | {int(r["model.latent_dim"]) for r in rows}))
     ax2.grid(True, which="major", alpha=0.35)
     ax2.grid(True, which="minor", alpha=0.12)
@@ -109,6 +113,8 @@ def main(argv=None) -> None:
     modes = args.modes or ("1,2" if study.mode == "smoke" else "1,2,3,4")
     pod = study.multirun("pod_modes", study.method("pod", [f"model.latent_dim={modes}"]), label={"method": "pod"})
     others = list(pod)
+    if study.supports("opinf"):  # fitted here on the same dataset, at ranks r = 2k (POD-Galerkin's state dimension)
+        others += OI.study_rows(study, [int(k) for k in modes.split(",")])
     if chosen is not None and study.supports("latent_mlp"):
         others += study.multirun("latent_mlp_choice", study.method("latent_mlp", [
             f"model.latent_dim={chosen['model.latent_dim']}", f"model.width={chosen['model.width']}"]),
@@ -129,11 +135,16 @@ def main(argv=None) -> None:
                f"{S.fmt(chosen['rollout_seconds_per_trajectory'])} s per trajectory)")
     pod_verdict = (f"POD-Galerkin meets the target from k = {min(int(r['model.latent_dim']) for r in pod_ok)} modes."
                    if pod_ok else "POD-Galerkin does not meet the target with the modes tried.")
+    for m in ("opinf", "opinf_observed"):
+        ok = [r for r in others if r["method"] == m and float(r[ERR]) <= target]
+        if any(r["method"] == m for r in others):
+            pod_verdict += (f" {S.LABELS[m]} meets it from r = {min(int(r['rank']) for r in ok)} (d = r/2)." if ok
+                            else f" {S.LABELS[m]} does not meet it with the ranks tried.")
     text = (f"# Model size ({study.scene}, {study.mode} settings, target field_rel_l2 ≤ {target:g})\n\n"
             f"Machine: {study.machine()}. Command: `{command}`.\n\n{verdict}\n\n"
             f"{pod_verdict}\n\n"
             + S.markdown_table(sorted(rows, key=lambda r: (int(r["model.latent_dim"]), int(r["model.width"]))), cols)
-            + "\nBaselines:\n\n" + S.markdown_table(others, [("method", "method")] + cols))
+            + "\nBaselines:\n\n" + S.markdown_table(others, [("method", "method"), ("rank", "OpInf rank r")] + cols))
     summary = S.write_text_atomic(study.out / "summary.md", text)
     print(verdict.replace("**", ""))
     study.finish([csv_path, plot(study, rows, others, target, chosen), summary])

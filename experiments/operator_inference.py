@@ -111,25 +111,72 @@ def evaluate(scene: Any, splits: dict[str, Any], rank: int) -> dict[str, Any]:
         proj_f, _ = model.decode(model.encode(test.fields, test.velocities))  # the basis' best: POD projection
         out.update(M.field_metrics("projection_rel_l2", proj_f, true, weights, times, horizon))
     record = model.describe()
+    out.update(rollout_seconds_per_trajectory=float(np.mean(pred.rollout_seconds)),
+               decode_seconds_per_trajectory=float(np.mean(pred.decode_seconds)), frames=T,
+               fields_seconds_per_trajectory=float(np.mean(pred.rollout_seconds + pred.decode_seconds)))
     out.update(method="OpInf", rank=rank, operators=record["operators"], regularizer=record["regularizer"],
                val_error=record["val_error"], velocity_weight=record["velocity_weight"],
                diverged=int(pred.diverged.sum()), trajectories=int(len(pred.diverged)),
                fit_seconds=record["fit_seconds"], basis_seconds=record["basis_seconds"],
-               rollout_seconds_per_trajectory=float(np.mean(pred.rollout_seconds)),
                candidates=record["candidates"])
     return out
+
+
+def study_rows(study: S.Study, dims: list[int], sweep: str = "opinf_rank", observed: bool = True
+               ) -> list[dict[str, Any]]:
+    """Operator Inference as a baseline of a study (pareto.py, model_size.py) at each latent dimension d of `dims`:
+    rank r = 2d, the state dimension of a d-dimensional Lagrangian model (q̃ and q̃̇), fitted and scored on the
+    study's own dataset (the one its `lnf.train` jobs read). One row per rank in the columns of lnf's metrics.json
+    (method "opinf", knob "r", ``model.latent_dim`` = d, ``rank`` = r, ``train_seconds`` = the fit incl. the POD,
+    the rollout and decoding costs per test trajectory, ``frames``); with `observed`, also "opinf_observed" rows:
+    OpInf given only lnf's sparse observations (experiments/opinf_observed.py: gappy POD; its completion rank
+    cross-validated once (fixed at 2 under --smoke), then kept; a rank above it is left out, its extra modes would be
+    round-off). Kept in
+    study.rows and written to out/<sweep>/rows.json. A rank the training snapshots cannot give is left out with a
+    note. Fits take seconds to minutes: rerun every time."""
+    from opinf_observed import evaluate_observed
+
+    scene, _, splits = load_data(study)
+    rows: list[dict[str, Any]] = []
+    completion = 2 if study.mode == "smoke" else None  # --smoke: fixed, the cross-validation takes a minute
+    folder = study.out / sweep
+    where = str(folder.relative_to(S.ROOT) if folder.is_relative_to(S.ROOT) else folder)  # as studylib.collect
+    for d in dims:
+        methods = [("opinf", evaluate)] + ([("opinf_observed", evaluate_observed)] if observed else [])
+        for method, run in methods:
+            if method == "opinf_observed" and completion is not None and 2 * d > completion:
+                print(f"[{study.name}] OpInf (observed) r = {2 * d} left out: the completed observations have rank "
+                      f"{completion}", flush=True)
+                continue
+            try:
+                row = run(scene, splits, 2 * d) if method == "opinf" else run(scene, splits, 2 * d, completion)
+            except ValueError as err:
+                print(f"[{study.name}] {method} r = {2 * d} left out: {err}", flush=True)
+                continue
+            completion = row.get("completion_rank", completion)
+            row.pop("candidates")
+            rows.append({**row, "sweep": sweep, "job": len(rows), "dir": where, "method": method, "knob": "r",
+                         "model.latent_dim": d, "train_seconds": row["fit_seconds"]})
+    folder.mkdir(parents=True, exist_ok=True)
+    S.write_text_atomic(folder / "rows.json", json.dumps(rows, indent=1, default=float) + "\n")
+    print(f"[{study.name}] Operator Inference at r = {', '.join(str(r['rank']) for r in rows)}: fits "
+          f"{S.fmt(sum(r['fit_seconds'] for r in rows))} s in all", flush=True)
+    study.rows += rows
+    return rows
 
 
 COLUMNS = [("method", "method"), ("rank", "rank r"), ("operators", "operators"), ("regularizer", "regularizer λ"),
            (f"{ERR}/all/median", "field error, all"), (f"{ERR}/in_horizon/median", "in horizon"),
            (f"{ERR}/extrapolation/median", "after horizon"), ("projection_rel_l2/all/median", "POD projection, all"),
            ("diverged", "diverged"), ("fit_seconds", "fit [s]"), ("basis_seconds", "of which POD [s]"),
-           ("rollout_seconds_per_trajectory", "rollout [s/traj]")]
+           ("rollout_seconds_per_trajectory", "rollout [s/traj]"), ("completion_rank", "gappy completion rank")]
 
 
 def main(argv=None) -> None:
     def extra(p):
         p.add_argument("--ranks", type=int, nargs="+", default=[1, 2, 4, 8], help="POD ranks r (default 1 2 4 8)")
+        p.add_argument("--observed", action="store_true",
+                       help="also OpInf given only lnf's sparse observations (gappy POD, experiments/opinf_observed.py)")
 
     study, args = S.parse_args("operator_inference", __doc__, argv, extra)
     if args.out is None:  # outputs/studies/operator_inference-<scene>[-smoke], whatever the scene
@@ -151,11 +198,23 @@ def main(argv=None) -> None:
         except ValueError as err:  # a rank the training snapshots cannot give
             raise SystemExit(f"--ranks {rank}: {err}") from err
         rows.append(row)
-        print(f"[operator_inference] r = {rank}: {row['operators']}, λ = {row['regularizer']:.3g}, field error "
-              f"{S.fmt(row[f'{ERR}/all/median'])} (all), {S.fmt(row[f'{ERR}/in_horizon/median'])} (in horizon), "
-              f"{row['diverged']} diverged; fit {row['fit_seconds']:.3g} s ({time.perf_counter() - t0:.1f} s in all)",
-              flush=True)
-    given = f" --ranks {' '.join(map(str, args.ranks))}" if args.ranks != [1, 2, 4, 8] else ""
+        if args.observed:
+            from opinf_observed import evaluate_observed
+
+            completion = next((r["completion_rank"] for r in rows if "completion_rank" in r),
+                              2 if study.mode == "smoke" else None)  # --smoke: fixed, not cross-validated
+            if completion is None or rank <= completion:
+                rows.append(evaluate_observed(scene, splits, rank, completion))
+            else:
+                print(f"[operator_inference] OpInf (observed) r = {rank} left out: the completed observations have "
+                      f"rank {completion}", flush=True)
+        for row in rows[-2 if rows[-1] is not row else -1:]:
+            print(f"[operator_inference] {row['method']} r = {rank}: {row['operators']}, λ = {row['regularizer']:.3g}, "
+                  f"field error {S.fmt(row[f'{ERR}/all/median'])} (all), {S.fmt(row[f'{ERR}/in_horizon/median'])} "
+                  f"(in horizon), {row['diverged']} diverged; fit {row['fit_seconds']:.3g} s", flush=True)
+        print(f"[operator_inference] r = {rank}: {time.perf_counter() - t0:.1f} s in all", flush=True)
+    given = (f" --ranks {' '.join(map(str, args.ranks))}" if args.ranks != [1, 2, 4, 8] else "") + \
+        (" --observed" if args.observed else "")
     out_arg = "" if args.out is None else f" --out {args.out}"
     command = f"{study.command()}{given}{out_arg}"
     date = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
@@ -164,7 +223,10 @@ def main(argv=None) -> None:
             f"POD of [q, σ q̇] on the {train.fields.shape[2]} fine points of the {len(train)} training trajectories "
             f"(samples k < {train.train_times}), a discrete-time model s_(k+1) = c + A s_k "
             f"(+ H s_k ⊗ s_k + G s_k ⊗ s_k ⊗ s_k) fitted by Tikhonov least squares (opinf); form (cA, cAH, cAHG) and "
-            f"λ chosen on the {len(splits['val'])} validation trajectories within the horizon. Test errors: "
+            f"λ chosen on the {len(splits['val'])} validation trajectories within the horizon. "
+            + ("OpInf (observed): the same model fitted on lnf's sparse coarse observations completed by gappy POD "
+               "(experiments/opinf_observed.py), started from each test trajectory's observed points. "
+               if args.observed else "") + f"Test errors: "
             f"lnf.metrics.field_metrics (relative L², median over {len(splits['test'])} trajectories), comparable with lnf's `field_rel_l2/*` on this dataset.\n\n"
             + S.markdown_table(rows, COLUMNS))
     S.write_text_atomic(study.out / "summary.md", text)

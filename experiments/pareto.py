@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+import operator_inference as OI  # noqa: E402
 import studylib as S  # noqa: E402
 
 ERR = "field_rel_l2/extrapolation/median"
@@ -42,7 +43,7 @@ def fill_frames(rows: list[dict]) -> None:
     import yaml
 
     for r in rows:
-        if "frames" not in r and "train_seconds" in r:
+        if "frames" not in r and "train_seconds" in r and "dir" in r:
             cfg = yaml.safe_load((S.ROOT / r["dir"] / ".hydra" / "config.yaml").read_text())
             r["frames"] = float(cfg["data"]["n_times"])
 
@@ -86,6 +87,8 @@ def sweeps(study: S.Study) -> None:
         res = "12" if smoke else "32,64"
         study.multirun("full_order_grid", study.method("full_order", [f"model.resolution={res}"]),
                        label={"method": "full_order", "knob": "resolution"})
+    if study.supports("opinf"):  # fitted here, on the same dataset, at POD's numbers of modes
+        OI.study_rows(study, [int(k) for k in modes.split(",")])  # r = 2k: POD-Galerkin's state dimension
 
 
 def reference_checkpoint(study: S.Study) -> Path:
@@ -246,8 +249,9 @@ def point_label(row: dict, dim: int = 2) -> str:
     width = f"w{get('model.width')}" if get("model.width") else None
     if knob == "width":
         return width or "width"
-    if knob in ("depth", "K", "d", "k"):
-        key = {"depth": "model.depth", "K": "model.reduction_steps", "d": "model.latent_dim", "k": "model.latent_dim"}
+    if knob in ("depth", "K", "d", "k", "r"):
+        key = {"depth": "model.depth", "K": "model.reduction_steps", "d": "model.latent_dim", "k": "model.latent_dim",
+               "r": "rank"}
         return f"{knob} = {get(key[knob])}"
     if knob == "resolution":
         return S.per_axis(get("model.resolution"), dim)
@@ -271,7 +275,8 @@ def plot(study: S.Study, rows: list[dict], simulator: dict | None = None) -> lis
     import matplotlib.pyplot as plt
 
     dim = study.scene_object().body_dim
-    train_rows = [r for r in rows if "train_seconds" in r and r["sweep"].split("_")[0] in ("lnf", "latent", "pod", "full")]
+    train_rows = [r for r in rows if "train_seconds" in r
+                  and r["sweep"].split("_")[0] in ("lnf", "latent", "pod", "full", "opinf")]  # opinf_rank: both OpInfs
     fig, axes = plt.subplots(1, 3, figsize=(15, 6.2), layout="constrained", sharey=True)
     to_label = []
     for ax, (xkey, xlabel) in zip(axes, cost_panels()):
@@ -279,7 +284,7 @@ def plot(study: S.Study, rows: list[dict], simulator: dict | None = None) -> lis
         x = np.array([float(r.get(xkey, np.nan)) for r in pts])
         y = np.array([float(r.get(ERR, np.nan)) for r in pts])
         shown_y = np.where(np.isfinite(y), y, DIVERGED_AT)
-        for m in S.METHODS:
+        for m in S.CHARTED:
             sel = [i for i, r in enumerate(pts) if S.method_of(r) == m]
             if not sel:
                 continue
@@ -311,7 +316,7 @@ def plot(study: S.Study, rows: list[dict], simulator: dict | None = None) -> lis
         ax.step(x[front][order], y[front][order], where="post", color="k", lw=1.1, ls="--", zorder=2,
                 label="Pareto front" if front.sum() > 1 else None)  # one point: no line to name
         labelled = set(np.flatnonzero(front))
-        for m in S.METHODS:  # each method's own front; the acceptance compares ours with the black box's
+        for m in S.CHARTED:  # each method's own front; the acceptance compares ours with the black box's
             sel = np.array([S.method_of(r) == m for r in pts])
             if not sel.any():
                 continue
@@ -388,7 +393,7 @@ def best_of_each_method(rows: list[dict], dim: int = 2) -> list[dict]:
     extrapolation error, so that ties (POD beyond the modes a scene has) name the smallest model. None where every
     run diverged."""
     out = []
-    for m in S.METHODS:
+    for m in S.CHARTED:
         mine = [r for r in rows if S.method_of(r) == m and not r["sweep"].startswith("ref_")
                 and np.isfinite(float(r.get(ERR, np.nan)))]
         if mine:
@@ -396,6 +401,40 @@ def best_of_each_method(rows: list[dict], dim: int = 2) -> list[dict]:
             best = min((r for r in mine if float(r[ERR]) <= 1.01 * lowest), key=lambda r: float(r.get(COST, np.inf)))
             out.append({**best, "label": S.LABELS[m], "setting": describe(best, dim)})
     return out
+
+
+def against_operator_inference(rows: list[dict], latent_dim: int) -> str:
+    """A paragraph comparing our most accurate point after the horizon with Operator Inference (on the full states,
+    and on lnf's sparse observations) at the same state dimension (rank r = 2d: q̃ and q̃̇) and at its best, saying
+    plainly which is ahead ("" without OpInf rows)."""
+    def finite(m: str) -> list[dict]:
+        return [r for r in rows if S.method_of(r) == m and not r["sweep"].startswith("ref_")
+                and np.isfinite(float(r.get(ERR, np.nan)))]
+
+    ours = finite("lnf")
+    if not ours or not any(S.method_of(r).startswith("opinf") for r in rows):
+        return ""
+    best = min(ours, key=lambda r: float(r[ERR]))
+    d = int(best.get("model.latent_dim") or latent_dim)
+    text = f"\nAgainst Operator Inference: our most accurate point after the horizon has {S.fmt(best[ERR])} at d = {d}."
+    for m, reads in (("opinf", "the full fine-grid training states"), ("opinf_observed", "lnf's sparse observations")):
+        op = finite(m)
+        tried = [r for r in rows if S.method_of(r) == m]
+        if not tried:
+            continue
+        same = [r for r in op if int(r["model.latent_dim"]) == d]
+        text += f" OpInf on {reads}"
+        if same:
+            ratio = float(best[ERR]) / float(same[0][ERR])
+            text += (f", at r = {2 * d} (the same state dimension): {S.fmt(same[0][ERR])}; ours is {S.fmt(ratio)}× "
+                     f"its error: " + ("**lnf loses**" if ratio > 1 else "**lnf is ahead**"))
+        if op:
+            top = min(op, key=lambda r: float(r[ERR]))
+            text += (f"; its best {S.fmt(top[ERR])} at r = {top['rank']} (fit {S.fmt(top['train_seconds'])} s, rollout "
+                     f"+ decoding {S.fmt(top.get(COST))} s per trajectory).")
+        else:
+            text += ": every rank tried diverged."
+    return text + "\n"
 
 
 def summary(study: S.Study, rows: list[dict], simulator: dict | None = None) -> Path:
@@ -432,7 +471,7 @@ def summary(study: S.Study, rows: list[dict], simulator: dict | None = None) -> 
                   f"{dominance(COST, exact)} {exact_text}.\n"]
     else:
         lines.append("\nNo black-box latent MLP: it cannot run this scene (the scene's baselines() says so).\n")
-    left_out = [S.LABELS[m] for m in S.METHODS if m != "latent_mlp" and not study.supports(m)]
+    left_out = [S.LABELS[m] for m in S.CHARTED if m != "latent_mlp" and not study.supports(m)]
     if left_out:
         lines.append(f"\nLeft out, as the scene's baselines() says they cannot run it: {', '.join(left_out)}.\n")
     if simulator and ref:
@@ -447,6 +486,7 @@ def summary(study: S.Study, rows: list[dict], simulator: dict | None = None) -> 
                      f"{S.fmt(fom[0]['rollout_seconds_per_trajectory'])} s); our reference model: "
                      f"{S.fmt(ref[0][COST])} s (rollout {S.fmt(ref[0]['rollout_seconds_per_trajectory'])} s): ratio ours/full "
                      f"= {float(ref[0][COST]) / float(fom[0][COST]):.3g}.\n")
+    lines.append(against_operator_inference(rows, int(study.composed().model.get("latent_dim") or 1)))
     lines.append("\nMost accurate point of each method (extrapolation error; its costs and energy drift):\n\n"
                  + S.markdown_table(best_of_each_method(rows, dim), [
                      ("label", "method"), ("setting", "setting"), (ERR, "err extrapolation"),

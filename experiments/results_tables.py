@@ -176,7 +176,12 @@ SPECS: dict[str, Spec] = {
     **{f"sparse_noisy-{s}": _study("sparse_noisy", s) for s in SCENES},
     "model_size-pendulum": _study("model_size", "pendulum"),
     "model_size-elastic": _study("model_size", "elastic"),
+    "model_size-elastic_actuated": _study("model_size", "elastic_actuated"),
     "model_size-soft_body": _study("model_size", "soft_body"),
+    # the same studies' second table: the baselines (POD-Galerkin, Operator Inference, the black box) at the question
+    **{f"model_size-{s}-baselines": _study("model_size", s, table=1) for s in ("elastic", "elastic_actuated",
+                                                                               "soft_body")},
+    **{f"seeds-{s}": _study("seeds", s) for s in SCENES},
     "cost_scaling-pendulum": _study("cost_scaling", "pendulum"),
     **{f"roofline-{s}": _study("roofline", s) for s in SCENES},
     "roofline-defaults": Spec("stack", "python experiments/roofline.py --scene <scene>",

@@ -44,9 +44,14 @@ METHODS: dict[str, list[str]] = {
     "pod": ["model=pod", "dynamics=lagrangian"],
     "full_order": ["model=full_order", "dynamics=lagrangian"],
 }
-LABELS = {"lnf": "LNF (ours)", "latent_mlp": "black-box latent MLP", "pod": "POD-Galerkin", "full_order": "full order"}
-COLORS = {"lnf": "tab:blue", "latent_mlp": "tab:red", "pod": "tab:green", "full_order": "tab:gray"}
-MARKERS = {"lnf": "o", "latent_mlp": "s", "pod": "^", "full_order": "D"}
+# Operator Inference (experiments/operator_inference.py study_rows: fitted in the study's process, not a Hydra job)
+# "opinf" reads the full fine-grid training states; "opinf_observed" only lnf's sparse observations (gappy POD)
+CHARTED = (*METHODS, "opinf", "opinf_observed")
+LABELS = {"lnf": "LNF (ours)", "latent_mlp": "black-box latent MLP", "pod": "POD-Galerkin", "full_order": "full order",
+          "opinf": "Operator Inference (full states)", "opinf_observed": "Operator Inference (sparse observations)"}
+COLORS = {"lnf": "tab:blue", "latent_mlp": "tab:red", "pod": "tab:green", "full_order": "tab:gray",
+          "opinf": "tab:purple", "opinf_observed": "tab:pink"}
+MARKERS = {"lnf": "o", "latent_mlp": "s", "pod": "^", "full_order": "D", "opinf": "v", "opinf_observed": "<"}
 
 COMMON = ["logger=csv", "evaluation.every_n_epochs=0", "evaluation.figures=0", "trainer.enable_progress_bar=false"]
 # Reduced settings (each study under 30 min on 2 CPU cores): smaller SIREN, 15 epochs, higher lr
@@ -643,9 +648,10 @@ def save_figure(fig: Any, path: Path) -> Path:
 
 
 #: line styles that keep coincident curves apart (with the method's marker and colour)
-LINESTYLES = {"lnf": "-", "latent_mlp": "--", "pod": "-.", "full_order": ":"}
+LINESTYLES = {"lnf": "-", "latent_mlp": "--", "pod": "-.", "full_order": ":", "opinf": (0, (3, 1, 1, 1, 1, 1)),
+              "opinf_observed": (0, (1, 1))}
 #: where each method's curve sits in a small sideways dodge (steps of DODGE_FRACTION of the x range)
-DODGE = {"lnf": -1.5, "latent_mlp": -0.5, "pod": 0.5, "full_order": 1.5}
+DODGE = {"lnf": -1.5, "latent_mlp": -0.5, "pod": 0.5, "full_order": 1.5, "opinf": 2.5, "opinf_observed": 3.5}
 DODGE_FRACTION = 0.012
 DODGE_NOTE = "curves drawn slightly apart in x (a few % of the axis at most) so that equal values stay visible"
 

@@ -22,6 +22,7 @@ from lnf.config_keys import check_known_keys
 from lnf.dataset import (GROUND_TRUTH_FOLDER, SOURCE_ARRAYS, SPLITS, DatasetConfig, DatasetError, content_checksum,
                          ensure_dataset, load_split, simulated_ground_truth, stored_generation, verify_dataset)
 from lnf.decoding_table import check_decoding
+from lnf.error_budget import read_error_budget
 from lnf.evaluation import (EvaluationCost, evaluate_rollouts, evaluation_cost, long_horizon_energy, quadrature_size,
                             size_text)
 from lnf.model import build, load
@@ -554,6 +555,8 @@ def _evaluate(cfg: DictConfig) -> dict[str, float]:
             controls=split.controls[:k] if own_states and split.controls is not None else None, progress=True))
     metrics["evaluation_seconds"] = time.perf_counter() - start
     write_json_atomic(output_dir / "metrics.json", metrics)
+    for finding in read_error_budget(metrics):
+        log.warning("%s rollout: %s", cfg.split, finding)
     write_json_atomic(output_dir / "run.json", run_metadata(cfg))
     if int(cfg.figures) > 0:
         try:  # the results are written: a figure that fails (a plotting backend, a full disk) must not cost them

@@ -134,14 +134,17 @@ def initial_state_causes(model: ReducedModel, dynamics: object, q0: Tensor, v0: 
 
 
 def divergence_metrics(steps: np.ndarray, dt: float, t0: float = 0.0, suffix: str = "",
-                       label: str = "rollout", causes: Optional[dict[int, str]] = None) -> dict[str, float]:
+                       label: str = "rollout", causes: Optional[dict[int, str]] = None,
+                       diagnoses: Optional[dict[int, str]] = None) -> dict[str, float]:
     """`diverged_count`, `diverged_fraction`, `first_divergence_step` and `first_divergence_time` [s] (+ `suffix`)
     from per-trajectory divergence steps (n,) (−1: stayed finite; see :func:`divergence_steps`).
 
     The first step and time are the earliest over the trajectories; both are −1.0 when none diverged (JSON has
     no NaN). A divergence is also logged as a warning (logger ``lnf.evaluation``) naming the `label`ed rollout;
     trajectories in `causes` (see :func:`initial_state_causes`) were non-finite at their initial state already, and
-    the warning names that cause instead of suggesting a smaller step.
+    the warning names that cause instead of suggesting a smaller step; trajectories in `diagnoses` (the
+    integrator's :func:`lnf.integrators.base.divergence_diagnosis`, ``Trajectory.extra["divergence_causes"]``) diverged
+    on the way, and the warning says why (a stiff step, or dynamics that run away at a resolved step).
     """
     steps = np.asarray(steps).reshape(-1)
     hit = steps >= 0
@@ -158,8 +161,13 @@ def divergence_metrics(steps: np.ndarray, dt: float, t0: float = 0.0, suffix: st
             hints.append(f"trajectories {rows[:10]}{' …' if len(rows) > 10 else ''}: {cause}")
         if causes:
             hints.append(NOT_A_STEP_SIZE_PROBLEM)
+        diagnoses = {r: d for r, d in (diagnoses or {}).items() if r in on_the_way}
+        for text in list(dict.fromkeys(diagnoses.values()))[:3]:
+            rows = [r for r, d in diagnoses.items() if d == text]
+            hints.append(f"trajectories {rows[:10]}{' …' if len(rows) > 10 else ''}: {text}")
+        on_the_way = [r for r in on_the_way if r not in diagnoses]
         if on_the_way:
-            hints.append(f"{'trajectories ' + str(on_the_way[:10]) + (' …' if len(on_the_way) > 10 else '') + ': ' if causes else ''}"
+            hints.append(f"{'trajectories ' + str(on_the_way[:10]) + (' …' if len(on_the_way) > 10 else '') + ': ' if causes or diagnoses else ''}"
                          f"try a smaller dt, integrator.substeps or another integrator")
         log.warning("%s: %d of %d trajectories diverged (non-finite or exploding state or energy), the first at "
                     "step %d (t = %.6g s, dt = %g s); trajectories %s%s. %s.", label, count, len(steps), first, when,
@@ -613,7 +621,8 @@ def evaluate_rollouts(
     metrics.pop("vpt/max", None)
     diverged = divergence_steps(traj.diverged_step, ~np.isfinite(kin + pot))
     metrics.update(divergence_metrics(diverged, dt, float(times[0]), label=label, causes=initial_state_causes(
-        model, dynamics, q0, v0, np.flatnonzero(diverged >= 0), quadrature)))
+        model, dynamics, q0, v0, np.flatnonzero(diverged >= 0), quadrature),
+        diagnoses=traj.extra.get("divergence_causes")))
     metrics["rollout_seconds_per_trajectory"] = rollout_seconds / n
     metrics["rollout_seconds_per_step"] = rollout_seconds / max(T - 1, 1)
     metrics["decode_seconds_per_trajectory"] = decode_seconds / n  # all T frames on the N evaluation points
@@ -691,5 +700,6 @@ def long_horizon_energy(
     out.update(divergence_metrics(diverged, dt, suffix="_long", label="long-horizon energy check",
                                   causes=initial_state_causes(model, model.dynamics(quadrature) if
                                                               (diverged >= 0).any() else None, q0, v0,
-                                                              np.flatnonzero(diverged >= 0), quadrature)))
+                                                              np.flatnonzero(diverged >= 0), quadrature),
+                                  diagnoses=traj.extra.get("divergence_causes")))
     return out

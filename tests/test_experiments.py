@@ -137,8 +137,11 @@ def _methods(rows):
 def test_pareto_study_smoke(studies):
     out, stdout = _study("pareto", studies)
     rows = _csv(out / "pareto.csv")
-    assert _methods(rows) == {"lnf", "latent_mlp", "pod", "full_order"}
-    assert {r["knob"] for r in rows} >= {"width", "k", "resolution", "quadrature", "integrator", "tabulated"}
+    assert _methods(rows) == {"lnf", "latent_mlp", "pod", "full_order", "opinf", "opinf_observed"}
+    assert {r["knob"] for r in rows} >= {"width", "k", "resolution", "quadrature", "integrator", "tabulated", "r"}
+    opinf = [r for r in rows if r["method"] == "opinf"]
+    assert [(r["model.latent_dim"], r["rank"]) for r in opinf] == [("1", "2"), ("2", "4")]  # r = 2d: q̃ and q̃̇
+    assert all(float(r["cost_seconds"]) > 0 and float(r["train_seconds"]) > 0 for r in opinf)
     tabulated = [r for r in rows if r["knob"] == "tabulated"]
     assert all(float(r["table_nodes"]) >= 16 and float(r["table_fallback_fraction"]) >= 0 for r in tabulated)
     for name in ("pareto.png", "quadrature.png", "summary.md"):
@@ -147,6 +150,7 @@ def test_pareto_study_smoke(studies):
     _assert_figure(out, "quadrature")
     summary = (out / "summary.md").read_text()
     assert "Black-box points dominated" in summary and "latent rollout cost" in summary
+    assert "Against Operator Inference" in summary and "Operator Inference (full states)" in summary
     # rerunning reuses every finished sweep instead of training again
     _, again = _study("pareto", studies)
     assert "reusing" in again and "done in" not in again
@@ -187,7 +191,8 @@ def test_model_size_study_smoke(studies):
     rows = _csv(out / "model_size.csv")
     ours = [r for r in rows if r["method"] == "lnf"]
     assert {(r["model.latent_dim"], r["model.width"]) for r in ours} == {("1", "8"), ("1", "16"), ("2", "8"), ("2", "16")}
-    assert _methods(rows) == {"lnf", "latent_mlp", "pod", "full_order"}
+    assert _methods(rows) == {"lnf", "latent_mlp", "pod", "full_order", "opinf", "opinf_observed"}
+    assert "Operator Inference" in (out / "summary.md").read_text()
     assert "choice: d = 1" in stdout  # the smoke target (10) is met at d = 1 (a 1-epoch width-8 model may miss it)
     _assert_figure(out, "model_size")
 
@@ -300,7 +305,7 @@ def test_pareto_study_smoke_on_the_elastic_scene(studies):
     and the FEM's own cost per trajectory is measured, drawn and compared."""
     out, _ = _study("pareto", studies, "--scene", "elastic", tag="-elastic")
     rows = _csv(out / "pareto.csv")
-    assert _methods(rows) == {"lnf", "latent_mlp", "pod"}
+    assert _methods(rows) == {"lnf", "latent_mlp", "pod", "opinf", "opinf_observed"}
     assert any(r["knob"] == "exact" and r["dynamics"] == "lagrangian" for r in rows)
     assert not any(r["knob"] == "tabulated" for r in rows)
     simulator = json.loads((out / "simulator.json").read_text())
@@ -378,7 +383,7 @@ def test_pareto_and_scenes_run_the_vibrating_string_from_its_own_folder(tmp_path
     stdout = run("pareto.py", "--config-dir", os.path.relpath(EXAMPLES / "conf", work), *scene, "--out", "pareto")
     out = (work / "pareto").resolve()
     rows = _csv(out / "pareto.csv")
-    assert _methods(rows) == {"lnf", "latent_mlp", "pod"}  # Scene.baselines(): no full-order model of a 1-D body
+    assert _methods(rows) == {"lnf", "latent_mlp", "pod", "opinf", "opinf_observed"}  # no full-order model in 1-D
     assert "full order left out" in stdout
     assert {r["knob"] for r in rows} >= {"width", "k", "quadrature", "integrator", "tabulated"}
     assert all(r["dir"].startswith(str(out)) for r in rows)  # the relative --out, as the caller meant it
@@ -694,3 +699,25 @@ def test_scenes_script_never_writes_a_checkpoints_data_path_outside_the_data_fol
         assert hashlib.md5((elsewhere / name).read_bytes()).hexdigest() == before
         assert Path(dm.path).parent == tmp_path / "t" / "data"
     assert sorted(p.name for p in elsewhere.iterdir()) == ["mydata.h5", "notes.txt"]
+
+
+def test_seeds_study_smoke(studies):
+    """The seed study: one training run per seed, the spread per error window, a verdict."""
+    out, stdout = _study("seeds", studies, "--seeds", "2")
+    rows = _csv(out / "seeds.csv")
+    assert sorted(r["seed"] for r in rows) == ["0", "1"]
+    summary = (out / "summary.md").read_text()
+    assert "worst ÷ median" in summary and ("Robust" in stdout or "Not robust" in stdout)
+    assert "Command: `python experiments/seeds.py --smoke --seeds 2`" in summary
+
+
+def test_seed_spread_counts_a_diverged_seed_as_the_worst():
+    sys.path.insert(0, str(ROOT / "experiments"))
+    from seeds import spread
+
+    rows = [{"seed": 0, "field_rel_l2/all/median": 0.05, "diverged_count": 0},
+            {"seed": 1, "field_rel_l2/all/median": 0.10, "diverged_count": 0},
+            {"seed": 2, "field_rel_l2/all/median": float("inf"), "diverged_count": 3}]
+    (all_,) = [r for r in spread(rows) if r["window"] == "all"]
+    assert all_["median"] == 0.10 and all_["worst_seed"] == 2 and all_["worst_over_median"] == float("inf")
+    assert all_["diverged_seeds"] == "2"

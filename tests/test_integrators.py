@@ -123,3 +123,37 @@ def test_progress_hears_of_every_step(dyn, integrator):
     q0, v0 = torch.tensor(STATE[:, :1]), torch.tensor(STATE[:, 1:])
     traj = integrator.integrate(dyn, q0, v0, 0.05, 12, record_every=3, progress=done.append)
     assert sum(done) == 12 and traj.q.shape[1] == 5
+
+
+class _Spring:
+    """q̈ = −ω² q (frequency ω [rad/s]) with an identity mass: a stiff step is dt·ω beyond the method's range."""
+
+    def __init__(self, omega: float) -> None:
+        self.omega = omega
+
+    def acceleration(self, q, v, t=0.0):
+        return -self.omega ** 2 * q
+
+    def mass_matrix(self, q):
+        return torch.eye(q.shape[-1], dtype=q.dtype).expand(q.shape[0], -1, -1)
+
+
+class _Runaway:
+    """q̈ = 50 q³: escapes in finite time whatever the step (a potential unbounded below)."""
+
+    def acceleration(self, q, v, t=0.0):
+        return 50 * q ** 3
+
+
+def test_divergence_message_names_a_stiff_step_and_the_substeps_that_cure_it():
+    from lnf.integrators.base import fastest_frequency
+
+    q0, v0 = torch.ones(2, 1, dtype=torch.float64), torch.zeros(2, 1, dtype=torch.float64)
+    assert torch.allclose(fastest_frequency(_Spring(40.0), q0, v0), torch.full((2,), 40.0, dtype=torch.float64))
+    with pytest.raises(RolloutDivergedError, match=r"ω_max = 200 rad/s \(h·ω_max = 10 .*stiff.*substeps ≥ 4"):
+        RK4().integrate(_Spring(200.0), q0, v0, 0.05, 100)
+    RK4(substeps=4).integrate(_Spring(200.0), q0, v0, 0.05, 100)  # the advice works
+    marked = RK4().integrate(_Spring(200.0), q0, v0, 0.05, 100, on_divergence="mark")
+    assert set(marked.extra["divergence_causes"]) == {0, 1}
+    with pytest.raises(RolloutDivergedError, match=r"grows at .* 1/s.*step size is not the cause"):
+        RK4().integrate(_Runaway(), q0, v0, 0.001, 10000)

@@ -114,14 +114,17 @@ def test_study_script_smoke_on_the_pendulum(tmp_path):
     env = {**os.environ, "LNF_DATA_DIR": str(tmp_path / "data")}
     out = tmp_path / "opinf"
     proc = subprocess.run([sys.executable, "experiments/operator_inference.py", "--smoke", "--scene", "pendulum",
-                           "--ranks", "1", "2", "--out", str(out)], cwd=ROOT, capture_output=True, text=True,
+                           "--ranks", "1", "2", "--observed", "--out", str(out)], cwd=ROOT, capture_output=True, text=True,
                           timeout=300, env=env)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     summary = (out / "summary.md").read_text()
     assert summary.startswith("Machine: ") and "Command: `python experiments/operator_inference.py --smoke" in summary
     assert "| method | rank r | operators |" in summary and "| OpInf | 2 |" in summary
     rows = json.loads((out / "operator_inference.json").read_text())["rows"]
-    assert [r["rank"] for r in rows] == [1, 2]
+    # each rank on the full states, then on the sparse observations (gappy POD, completion rank 2 under --smoke)
+    assert [(r["method"], r["rank"]) for r in rows] == [("OpInf", 1), ("OpInf (observed)", 1), ("OpInf", 2),
+                                                        ("OpInf (observed)", 2)]
+    assert "| OpInf (observed) | 2 |" in summary and all(r["completion_rank"] == 2 for r in rows[1::2])
     for r in rows:
         for window in ("all", "in_horizon", "extrapolation"):
             assert np.isfinite(r[f"field_rel_l2/{window}/median"])

@@ -17,12 +17,15 @@ class RolloutDivergedError(RuntimeError):
     """A rollout produced non-finite or exploding states; says where."""
 
     def __init__(self, step: int, time: float, trajectories: list[int], integrator: str, dt: float,
-                 cause: Optional[str] = None) -> None:
+                 cause: Optional[str] = None, diagnosis: Optional[str] = None) -> None:
+        """`cause`: what is non-finite at the initial state already (:func:`initial_state_cause`); `diagnosis`: why
+        a rollout that started finite ran away (:func:`divergence_diagnosis`)."""
         self.step, self.time, self.trajectories, self.cause = step, time, trajectories, cause
         where = (f"rollout diverged with {integrator} (dt={dt:g}) at step {step}, t={time:.6g}, "
                  f"trajectories {trajectories[:10]}{' …' if len(trajectories) > 10 else ''}")
         super().__init__(
             f"{where}: {cause}. {NOT_A_STEP_SIZE_PROBLEM}" if cause else
+            f"{where}: state became non-finite or exceeded the bound; {diagnosis}." if diagnosis else
             f"{where}: state became non-finite or exceeded the bound. Try a smaller dt (or integrator.substeps), "
             "another integrator, or check the model."
         )
@@ -49,6 +52,62 @@ def initial_state_cause(dynamics: Dynamics, q0: Tensor, v0: Tensor, rows: list[i
         return ("the acceleration is already non-finite at the initial state (the pulled-back potential or mass, from "
                 "the scene's potential and mass density, or the model, is NaN or inf there)")
     return None
+
+
+def stiffness_eigenvalues(dynamics: Dynamics, q: Tensor, v: Tensor, t: float = 0.0) -> Tensor:
+    """Eigenvalues λ (B, d) complex128 of ∂q̃̈/∂q̃ at (q, v) (B, d) (central differences, 2d evaluations of the
+    acceleration); NaN rows where it is not finite. λ ≈ −ω² for an oscillation of frequency ω [rad/s], λ > 0
+    for a direction that grows (a concave potential)."""
+    q, v = q.detach(), v.detach()
+    eps = torch.finfo(q.dtype).eps ** 0.5 * (1.0 + q.abs())
+    columns = []
+    for k in range(q.shape[-1]):
+        dq = torch.zeros_like(q)
+        dq[:, k] = eps[:, k]
+        columns.append((dynamics.acceleration(q + dq, v, t) - dynamics.acceleration(q - dq, v, t)) / (2 * eps[:, k:k + 1]))
+    jac = torch.stack(columns, -1).to(torch.float64)  # (B, d, d)
+    finite = torch.isfinite(jac).all(-1).all(-1)
+    eig = torch.linalg.eigvals(torch.where(finite[:, None, None], jac, torch.zeros_like(jac)))
+    return torch.where(finite[:, None], eig, torch.full_like(eig, float("nan")))
+
+
+def fastest_frequency(dynamics: Dynamics, q: Tensor, v: Tensor, t: float = 0.0) -> Tensor:
+    """ω_max (B,) [rad/s]: √(max |λ|) over the eigenvalues of ∂q̃̈/∂q̃ at (q, v) (:func:`stiffness_eigenvalues`),
+    the fastest reduced time scale there; NaN where the acceleration is not finite."""
+    return stiffness_eigenvalues(dynamics, q, v, t).abs().amax(-1).sqrt()
+
+
+def divergence_diagnosis(dynamics: Dynamics, q: Tensor, v: Tensor, h: float, t: float, integrator: str,
+                         substeps: int = 1) -> str:
+    """Why trajectories diverged on the way, read at their last finite state (q, v) (B, d) with steps of `h` [s]
+    (`substeps` per dt):
+    the step against the fastest reduced frequency (a stiff step, cured by substeps), or a step that resolves it (the
+    reduced dynamics itself runs away, which a smaller step will not cure), with M̃'s condition number."""
+    try:
+        with torch.no_grad():
+            eig = stiffness_eigenvalues(dynamics, q, v, t)
+            omega = float(torch.nan_to_num(eig.abs().amax(-1).sqrt(), nan=0.0).max())
+            growth = float(torch.nan_to_num(eig.real.clamp(min=0).amax(-1).sqrt(), nan=0.0).max())
+            cond = float(torch.linalg.cond(dynamics.mass_matrix(q).to(torch.float64)).max()) \
+                if hasattr(dynamics, "mass_matrix") else float("nan")
+    except Exception:  # noqa: BLE001 - a diagnosis only: the divergence is reported either way
+        return "try a smaller dt, integrator.substeps or another integrator"
+    hw = abs(h) * omega
+    limit = 2.8 if integrator == "rk4" else 1.0  # RK4's stability bound; the midpoint solve's easy range
+    mass = f", M̃'s condition number {cond:.3g}" if math.isfinite(cond) else ""
+    if growth > 0.5 * omega > 0:
+        mass += f"; a direction grows at {growth:.4g} 1/s: the pulled-back potential is concave there"
+    where = f"at the last finite state the fastest reduced frequency is ω_max = {omega:.4g} rad/s (h·ω_max = {hw:.3g}" \
+            f" at step h = {abs(h):.3g} s{mass})"
+    if hw > limit:
+        need = substeps * math.ceil(hw / limit)
+        return (f"{where}: the step is stiff against it. Take integrator.substeps ≥ {need} (h·ω_max ≤ {limit:g})"
+                + (" or integrator=implicit_midpoint (A-stable, Newton's method for stiff steps)" if integrator == "rk4"
+                   else " or keep integrator.newton=true"))
+    return (f"{where}: the step resolves it, so the step size is not the cause. The reduced dynamics itself runs away "
+            "from this state (a pulled-back mass M̃ that degenerates, or a potential unbounded below, e.g. off the "
+            "range of codes the embedding was trained on): compare the projection floor (projection_rel_l2) with the "
+            "rollout error, and check the scene with lnf.scenes.check.check_scene")
 
 
 @dataclass
@@ -148,16 +207,24 @@ class FixedStepIntegrator(Integrator):
         alive = torch.ones(B, dtype=torch.bool, device=q0.device)
         state = self._to_internal(dynamics, q0, v0)
         t = t0
+        causes: dict[int, str] = {}  # trajectory → why it diverged on the way (divergence_diagnosis)
         for n in range(1, steps + 1):
+            before = state
             for k in range(self.substeps):
                 state = self.step(dynamics, state, h, t0 + (n - 1) * dt + k * h)
             t = t0 + n * dt
             bad = self._bad(*state) & alive
             if bad.any():
+                rows = bad.nonzero().flatten().tolist()
+                cause = initial_state_cause(dynamics, q0, v0, rows, t0) if n == 1 else None
+                diagnosis = None
+                if cause is None:
+                    q_last, v_last = self._to_qv(dynamics, before)
+                    diagnosis = divergence_diagnosis(dynamics, q_last[rows], v_last[rows], h, t - dt, self.name,
+                                                     self.substeps)
+                    causes.update(dict.fromkeys(rows, diagnosis))
                 if on_divergence == "raise":
-                    rows = bad.nonzero().flatten().tolist()
-                    raise RolloutDivergedError(n, t, rows, self.name, dt,
-                                               initial_state_cause(dynamics, q0, v0, rows, t0) if n == 1 else None)
+                    raise RolloutDivergedError(n, t, rows, self.name, dt, cause, diagnosis)
                 diverged[bad] = n
                 alive &= ~bad
                 if not alive.any():
@@ -173,4 +240,5 @@ class FixedStepIntegrator(Integrator):
                 qs[:, r] = torch.where(alive[:, None], q, float("nan"))
                 vs[:, r] = torch.where(alive[:, None], v, float("nan"))
         times = t0 + dt * record_every * torch.arange(n_rec, dtype=torch.float64)
-        return Trajectory(times=times, q=qs, v=vs, diverged_step=diverged, steps=steps, dt=dt)
+        return Trajectory(times=times, q=qs, v=vs, diverged_step=diverged, steps=steps, dt=dt,
+                          extra={"divergence_causes": causes} if causes else {})

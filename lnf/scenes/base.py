@@ -224,6 +224,7 @@ class Scene:
           Gauss–Legendre rule).
         - ``latent_mlp``: the black-box latent MLP takes no per-trajectory loads. Default: ``not has_controls``.
         - ``pod``: POD-Galerkin pulls back any Lagrangian. Default: True.
+        - ``opinf``: Operator Inference reads only the dataset's fine-grid fields and velocities: not listed, so able.
 
         Override to exclude a baseline the defaults allow, e.g. ``return {**super().baselines(), "pod": False}``.
         A method missing from the dict counts as able to run the scene.

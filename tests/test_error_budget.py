@@ -1,0 +1,30 @@
+"""Reading the test error against the projection floor (lnf.error_budget)."""
+import math
+
+from lnf.error_budget import read_error_budget
+
+
+def _m(floor, error, window="all"):
+    return {f"projection_rel_l2/{window}/median": floor, f"field_rel_l2/{window}/median": error}
+
+
+def test_a_collapsed_embedding_is_named_with_its_floor():
+    (finding,) = read_error_budget(_m(0.99, 1.2))
+    assert "the embedding collapsed" in finding and "0.99" in finding and "model.w0" in finding
+
+
+def test_dynamics_that_lose_the_accuracy_are_named_with_the_ratio():
+    (finding,) = read_error_budget(_m(0.022, 0.181))
+    assert "the dynamics lose the accuracy" in finding and "8.23× the projection floor 0.022" in finding
+
+
+def test_a_diverged_rollout_over_a_good_floor_points_at_the_dynamics():
+    (finding,) = read_error_budget(_m(0.01, math.inf))
+    assert "the rollout diverged" in finding and "0.01" in finding
+
+
+def test_nothing_stands_out_near_the_floor_or_without_a_floor():
+    assert read_error_budget(_m(0.0169, 0.0182)) == []
+    assert read_error_budget({"field_rel_l2/all/median": 0.5}) == []
+    assert read_error_budget(_m(float("nan"), 0.5)) == []
+    assert read_error_budget(_m(0.01, 0.1, "extrapolation"), window="extrapolation")
