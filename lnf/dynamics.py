@@ -12,6 +12,7 @@ from typing import Callable, Optional
 import torch
 from torch import Tensor
 
+from lnf.dynamics_kind import LAGRANGIAN
 from lnf.quadrature import Quadrature
 from lnf.reduction import solve_mass
 from lnf.scenes.base import Scene
@@ -45,6 +46,8 @@ class ReducedDynamics:
     non-conservative forces f (B, N, A), which enter as τ̃ = Σ_j w_j J_jᵀ f_j; set `controls` (B, c) to the
     trajectories' load parameters before integrating a forced scene.
     """
+
+    kind = LAGRANGIAN
 
     def __init__(self, jet: JetFn, scene: Scene, quadrature: Quadrature) -> None:
         self.jet = jet

@@ -22,6 +22,7 @@ from lnf.config_keys import check_known_keys
 from lnf.dataset import (GROUND_TRUTH_FOLDER, SOURCE_ARRAYS, SPLITS, DatasetConfig, DatasetError, content_checksum,
                          ensure_dataset, load_split, simulated_ground_truth, stored_generation, verify_dataset)
 from lnf.decoding_table import check_decoding
+from lnf.dynamics_kind import dynamics_kind
 from lnf.error_budget import read_error_budget
 from lnf.evaluation import (EvaluationCost, evaluate_rollouts, evaluation_cost, long_horizon_energy, quadrature_size,
                             size_text)
@@ -78,19 +79,18 @@ def choose_dynamics(model: Any, spec: Any, ckpt_path: Any) -> None:
     """Apply ``dynamics=tabulated`` / ``dynamics=lagrangian`` to a loaded model (None keeps the checkpoint's)."""
     if not spec:
         return
-    target = str(spec.get("_target_", ""))  # read before resolving: a learned dynamics' spec names training keys
-    if target.endswith(("TabulatedDynamics", "ReducedDynamics")):
+    target = str(spec.get("_target_", ""))
+    kind = dynamics_kind(spec)  # read before resolving: a learned dynamics' spec names training keys
+    if not kind.trained:
         spec = OmegaConf.to_container(spec, resolve=True) if OmegaConf.is_config(spec) else dict(spec)
     if not hasattr(model, "set_tabulation") or getattr(model, "latent_dynamics", None) is not None:
         raise ValueError(f"dynamics={target.rpartition('.')[2] or spec} applies to our model's pulled-back Lagrangian; "
                          f"the checkpoint {ckpt_path} holds a {type(model).__name__} with its own dynamics")
-    if target.endswith("TabulatedDynamics"):
-        model.set_tabulation(spec)
-    elif target.endswith("ReducedDynamics"):
-        model.set_tabulation(None)
-    else:
-        raise ValueError(f"dynamics: lnf.evaluate can switch between lnf.dynamics.ReducedDynamics and "
-                         f"lnf.tabulated.TabulatedDynamics, got _target_={target!r} (learned dynamics are trained)")
+    if kind.trained:
+        raise ValueError(f"dynamics: lnf.evaluate can switch between the exact and the tabulated pullback "
+                         f"(dynamics=lagrangian, dynamics=tabulated), got _target_={target!r}, a {kind.name} dynamics "
+                         f"(learned dynamics are trained)")
+    model.set_tabulation(spec if kind.needs_codes else None)
 
 
 @torch.no_grad()

@@ -25,6 +25,7 @@ import torch
 from torch import Tensor, nn
 
 from lnf.boundary import ClampedField
+from lnf.dynamics_kind import dynamics_kind
 from lnf.quadrature import Quadrature, QuadratureRule
 from lnf.reduced_model import ReducedModel, as_field
 from lnf.reduction import (best_start, project_velocity, projection_loss, pullback_mass_matrix, reconstruction_loss,
@@ -185,6 +186,7 @@ class LagrangianNeuralField(ReducedModel):
     """
 
     reduces_through_field = True  # reduce(field=...): the K steps iterate on any φ with a jet (a table of it, too)
+    learned_codes = True  # a table of the pullback or a black-box dynamics can be built on its codes
 
     def __init__(
         self,
@@ -237,9 +239,10 @@ class LagrangianNeuralField(ReducedModel):
         self.log_step_size = nn.Parameter(torch.tensor(math.log(step_size)))
         self.latent_dynamics: Optional[nn.Module] = None
         self.tabulation: Optional[dict[str, Any]] = None
-        if dynamics is not None and _is_tabulated(dynamics):
+        kind = None if dynamics is None else dynamics_kind(dynamics)
+        if kind is not None and kind.needs_codes and not kind.trained:  # a table of the pullback on the codes' range
             self.set_tabulation(dynamics)
-        elif dynamics is not None and not _is_lagrangian(dynamics):
+        elif kind is not None and kind.trained:
             self.latent_dynamics = build({**dynamics, "latent_dim": int(latent_dim)})
         # range of the codes of the last training epoch (the box of a tabulated dynamics); NaN until trained
         self.register_buffer("code_low", torch.full((int(latent_dim),), float("nan")))
@@ -396,14 +399,6 @@ class LagrangianNeuralField(ReducedModel):
         kind = "lagrangian" if self.latent_dynamics is None else type(self.latent_dynamics).__name__
         kind = "tabulated lagrangian" if self.tabulation is not None and self.latent_dynamics is None else kind
         return f"{super().extra_repr()}, K={self.reduction_steps}, dynamics={kind}"
-
-
-def _is_lagrangian(spec: dict[str, Any]) -> bool:
-    return str(spec.get("_target_", "")).endswith("ReducedDynamics")
-
-
-def _is_tabulated(spec: dict[str, Any]) -> bool:
-    return str(spec.get("_target_", "")).endswith("TabulatedDynamics")
 
 
 def _fill_code_range(module: "LagrangianNeuralField", state_dict: dict[str, Tensor], prefix: str, *args: Any) -> None:

@@ -46,6 +46,8 @@ class ReducedModel(nn.Module):
     trainable: bool = True
     state_is_field: bool = False  # True for the full-order model: its "codes" are the nodal field itself
     reduces_through_field: bool = False  # True where reduce() takes field= (ρ̃ iterates on φ: a table of φ may stand in)
+    #: True where the codes are a learned field's (lnf's): dynamics that need codes (a table, a black box) apply
+    learned_codes: bool = False
     field: nn.Module
 
     def __init__(self, scene: Scene, quadrature: Optional[QuadratureRule] = None) -> None:

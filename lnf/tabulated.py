@@ -27,6 +27,7 @@ from numpy.polynomial import chebyshev as C
 from torch import Tensor
 
 from lnf.dynamics import ReducedDynamics
+from lnf.dynamics_kind import TABULATED
 from lnf.reduction import solve_mass
 
 
@@ -109,6 +110,8 @@ class TabulatedDynamics:
 
     ``info`` records the nodes per axis, the achieved error and the build time [s].
     """
+
+    kind = TABULATED
 
     def __init__(self, exact: ReducedDynamics, low: Sequence[float], high: Sequence[float], tol: float = 1e-7,
                  min_nodes: int = 16, max_nodes: int = 256, max_table_points: int = 65536, chunk: int = 256,

@@ -23,6 +23,7 @@ from omegaconf import DictConfig, OmegaConf
 from lnf.baselines.latent_mlp import latent_trajectories
 from lnf.allocator import keep_freed_memory
 from lnf.config_keys import check_known_keys
+from lnf.dynamics_kind import dynamics_kind
 from lnf.model import dropped_settings, target_class
 from lnf.run_lock import EVALUATION_RESULTS, run_folder_lock, set_aside
 from lnf.scenes.base import Scene
@@ -260,7 +261,7 @@ def _train(cfg: DictConfig) -> dict[str, float]:
     datamodule: SnapshotDataModule = hydra.utils.instantiate(cfg.data, scene=scene, _convert_="all")
     model_spec = _container(cfg.model)
     dynamics_spec = _container(cfg.get("dynamics"))
-    if dynamics_spec and not str(dynamics_spec.get("_target_", "")).endswith("ReducedDynamics"):
+    if dynamics_spec and dynamics_kind(dynamics_spec).needs_codes:  # the exact pullback is the model's own
         model_spec["dynamics"] = dynamics_spec
     dropped = dropped_settings(model_spec)  # each named in a warning
     model_spec = {k: v for k, v in model_spec.items() if k not in dropped}

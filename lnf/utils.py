@@ -150,11 +150,24 @@ def check_config(cfg: DictConfig) -> None:
     if model.get("reduction_steps") is not None and int(model.reduction_steps) < 1:
         raise ValueError(f"model.reduction_steps (K) must be ≥ 1, got {model.reduction_steps}")
     dynamics = cfg.get("dynamics")
-    if dynamics is not None and not str(dynamics.get("_target_", "")).endswith("ReducedDynamics") \
-            and not str(model.get("_target_", "")).endswith("LagrangianNeuralField"):
+    if dynamics is not None and _needs_codes(dynamics) and not _has_codes(model):
         raise ValueError(f"dynamics={dynamics._target_} (learned or tabulated latent dynamics) needs model=lnf "
                          f"(a neural field with codes to learn or tabulate on), got model={model.get('_target_')}; "
                          f"use dynamics=lagrangian with this model")
+
+
+def _needs_codes(dynamics: Any) -> bool:
+    """Whether the dynamics spec's class needs a learned field's codes (its declared kind, lnf.dynamics_kind)."""
+    from lnf.dynamics_kind import dynamics_kind
+
+    return dynamics_kind(dynamics).needs_codes
+
+
+def _has_codes(model: Any) -> bool:
+    """Whether the model spec's class has learned codes (its ``learned_codes``, lnf.reduced_model.ReducedModel)."""
+    from lnf.model import target_class
+
+    return bool(getattr(target_class(model.get("_target_"), key="model._target_"), "learned_codes", False))
 
 
 def resolved_config(cfg: DictConfig) -> dict[str, Any]:

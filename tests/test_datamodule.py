@@ -28,7 +28,20 @@ def data_dir(tmp_path_factory):
 
 
 def _all(loader):
-    return [torch.cat(parts) for parts in zip(*loader)]
+    batches = list(loader)
+    return [torch.cat([getattr(b, key) for b in batches]) for key in ("points", "values", "velocities")]
+
+
+def test_batches_are_typed_and_carry_only_the_targets_asked_for(data_dir):
+    from lnf.training.batch import SnapshotBatch
+
+    batch = next(iter(_module(data_dir).train_dataloader()))
+    assert isinstance(batch, SnapshotBatch) and batch.potential is None and batch.gradients is None
+    assert batch.values.shape[0] == len(batch) == batch.points.shape[0]
+    dm = _module(data_dir)
+    dm.potential_targets = True
+    batch = next(iter(dm.train_dataloader()))
+    assert batch.potential.shape == (len(batch),) and batch.gradients is None
 
 
 def test_snapshots_are_the_masked_coarse_observations(data_dir):
@@ -37,7 +50,8 @@ def test_snapshots_are_the_masked_coarse_observations(data_dir):
     assert ds._arrays is None and len(ds) == 3 * 6
     split = load_split(dm.path, "train")
     idx = np.flatnonzero(split.masks[1])
-    points, values, velocities = ds[1 * 6 + 4]
+    item = ds[1 * 6 + 4]
+    points, values, velocities = item["points"], item["values"], item["velocities"]
     np.testing.assert_array_equal(points.numpy(), split.coarse_points[idx])
     np.testing.assert_array_equal(values.numpy(), split.coarse_fields[1, 4, idx])
     np.testing.assert_array_equal(velocities.numpy(), split.coarse_velocities[1, 4, idx])
@@ -62,7 +76,7 @@ def test_noise_has_the_stated_size_and_only_on_training(data_dir):
     assert all(np.array_equal(x, y) for x, y in zip(clean.observations("val"), noisy.observations("val")))
     # the stacked observations are the items of the dataset
     ds = noisy.snapshots("train")
-    np.testing.assert_array_equal(v1[2, 3], ds[2 * 6 + 3][1].numpy())
+    np.testing.assert_array_equal(v1[2, 3], ds[2 * 6 + 3]["values"].numpy())
 
 
 def test_lazy_dataset_pickles_without_its_file_handle(data_dir):
@@ -70,7 +84,7 @@ def test_lazy_dataset_pickles_without_its_file_handle(data_dir):
     ds[0]
     assert ds._file is not None
     copy = pickle.loads(pickle.dumps(ds))
-    assert copy._file is None and torch.equal(copy[5][1], ds[5][1])
+    assert copy._file is None and torch.equal(copy[5]["values"], ds[5]["values"])
     ds.close()
 
 
@@ -94,10 +108,10 @@ def test_potential_targets_are_the_full_order_potential_of_each_snapshot(data_di
     dm.potential_targets = True
     ds = dm.snapshots("train")
     split = load_split(dm.path, "train")
-    *_, potential = ds[2 * 6 + 3]
+    potential = ds[2 * 6 + 3]["potential"]
     _, expected = dm.scene.true_energy_parts(split.states[2, 3])
     assert potential.shape == () and potential.item() == pytest.approx(float(expected), rel=1e-6)
-    assert len(_module(data_dir).snapshots("train")[0]) == 3  # off by default: (points, values, velocities)
+    assert set(_module(data_dir).snapshots("train")[0]) == {"points", "values", "velocities"}  # off by default
 
 
 def test_gradient_targets_need_a_scene_that_gives_them(data_dir):

@@ -157,3 +157,11 @@ def test_divergence_message_names_a_stiff_step_and_the_substeps_that_cure_it():
     assert set(marked.extra["divergence_causes"]) == {0, 1}
     with pytest.raises(RolloutDivergedError, match=r"grows at .* 1/s.*step size is not the cause"):
         RK4().integrate(_Runaway(), q0, v0, 0.001, 10000)
+def test_an_integrator_config_builds_the_class_it_names():
+    """conf/integrator/*.yaml give a `_target_`: the class is built from it (not a name guessed from it)."""
+    integ = get_integrator({"_target_": "lnf.integrators.ImplicitMidpoint", "order": 2, "substeps": 3})
+    assert isinstance(integ, ImplicitMidpoint) and integ.order == 2 and integ.substeps == 3
+    with pytest.raises(ValueError, match=r"integrator._target_=lnf.dynamics.ReducedDynamics: not a subclass"):
+        get_integrator({"_target_": "lnf.dynamics.ReducedDynamics"})
+    with pytest.raises(ValueError, match=r"integrator rk4 takes no integrator.order"):
+        get_integrator({"_target_": "lnf.integrators.RK4", "order": 2})

@@ -15,6 +15,7 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
+from lnf.dynamics_kind import LEARNED
 from lnf.integrators.rk4 import RK4
 
 log = logging.getLogger("lnf.latent_mlp")
@@ -22,6 +23,8 @@ log = logging.getLogger("lnf.latent_mlp")
 
 class LearnedLatentDynamics:
     """Integrator-facing wrapper: acceleration from the MLP, energies from the pulled-back Lagrangian."""
+
+    kind = LEARNED
 
     def __init__(self, mlp: "LatentMLPDynamics", lagrangian: Any) -> None:
         self.mlp, self.lagrangian = mlp, lagrangian
@@ -43,6 +46,8 @@ class LatentMLPDynamics(nn.Module):
         window: steps of each multi-step RK4 rollout in the fitting loss.
         seed: seed of the initialisation and window sampling.
     """
+
+    kind = LEARNED
 
     def __init__(self, latent_dim: int, width: int = 64, depth: int = 2, iterations: int = 2000, lr: float = 3e-3,
                  batch_size: int = 256, window: int = 8, seed: int = 0) -> None:

@@ -13,25 +13,39 @@ INTEGRATORS: dict[str, type[Integrator]] = {"rk4": RK4, "implicit_midpoint": Imp
 
 
 def get_integrator(spec: "str | Integrator | dict[str, Any]") -> Integrator:
-    """An integrator from an instance, a name ('rk4', 'implicit_midpoint', 'dopri5') or {'name': ..., **kwargs}."""
+    """An integrator from an instance, a registered name ('rk4', 'implicit_midpoint', 'dopri5': :data:`INTEGRATORS`),
+    ``{'name': ..., **kwargs}``, or a config ``{'_target_': 'pkg.mod.Class', **kwargs}`` (conf/integrator/: the class
+    it names, an :class:`Integrator`, built with its settings)."""
     if isinstance(spec, Integrator):
         return spec
     kwargs: dict[str, Any] = {}
+    if isinstance(spec, dict) and "_target_" in spec and "name" not in spec:
+        from lnf.model import target_class
+
+        cls = target_class(spec["_target_"], key="integrator._target_")
+        if not (isinstance(cls, type) and issubclass(cls, Integrator)):
+            raise ValueError(f"integrator._target_={spec['_target_']}: not a subclass of lnf.integrators.Integrator")
+        return _build(cls, cls.name, {k: v for k, v in spec.items() if k != "_target_"})
     if isinstance(spec, dict):
-        kwargs = {k: v for k, v in spec.items() if k not in ("name", "_target_")}
-        spec = spec.get("name", spec.get("_target_", "").rsplit(".", 1)[-1].lower())
+        kwargs = {k: v for k, v in spec.items() if k != "name"}
+        spec = spec.get("name", "")
     name = str(spec).lower()
     aliases = {"implicitmidpoint": "implicit_midpoint", "midpoint": "implicit_midpoint"}
     name = aliases.get(name, name)
     if name not in INTEGRATORS:
         raise ValueError(f"unknown integrator {spec!r}; expected one of {sorted(INTEGRATORS)}")
-    accepted = inspect.signature(INTEGRATORS[name]).parameters
+    return _build(INTEGRATORS[name], name, kwargs)
+
+
+def _build(cls: type[Integrator], name: str, kwargs: dict[str, Any]) -> Integrator:
+    """`cls(**kwargs)`, or a ValueError naming the settings it does not take and how to remove them."""
+    accepted = inspect.signature(cls).parameters
     unknown = sorted(k for k in kwargs if k not in accepted)
     if unknown:
         raise ValueError(f"integrator {name} takes no {', '.join('integrator.' + k for k in unknown)} (it takes "
                          f"{', '.join(sorted(accepted)) or 'no settings'}); an experiment config may have set it for "
                          f"another integrator: remove it with {' '.join('~integrator.' + k for k in unknown)}")
-    return INTEGRATORS[name](**kwargs)
+    return cls(**kwargs)
 
 
 __all__ = ["Integrator", "FixedStepIntegrator", "RK4", "ImplicitMidpoint", "Dopri5", "Trajectory",

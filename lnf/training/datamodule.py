@@ -19,6 +19,7 @@ from lnf.dataset import (SOURCE_ARRAYS, DatasetConfig, DatasetError, TrajectoryS
                          ensure_dataset, generation_attributes, load_split, observed_index, stored_generation)
 from lnf.model import build
 from lnf.scenes.base import Scene
+from lnf.training.batch import SnapshotBatch
 from lnf.training.sampling import GlobalBatchSampler
 
 log = logging.getLogger("lnf.data")
@@ -38,11 +39,12 @@ class SnapshotDataset(Dataset):
     on first use and reads one snapshot per item, so memory does not grow with the dataset. With
     ``in_memory`` the split's coarse values and velocities over the first `n_times` samples are read once.
 
-    Item: points (Nobs, dim_B), values (Nobs, A), velocities (Nobs, A), float32, and with `scene` given the
-    full-order potential energy V of the snapshot (a 0-d float32 tensor, from the stored states through
-    ``scene.true_energy_parts``: the target of the optional energy loss; NaN without `scene` when gradients
-    follow), and with `gradient_scene` given the full-order ∇_X q at the observed points (Nobs, A, dim_B), from
-    ``scene.field_gradients`` (the target of the optional gradient loss). With ``noise`` > 0, item
+    Item: a dict of float32 tensors, ``points`` (Nobs, dim_B), ``values`` (Nobs, A), ``velocities`` (Nobs, A), with
+    `scene` given also ``potential``, the snapshot's full-order potential energy V (0-d, from the stored states
+    through ``scene.true_energy_parts``: the target of the optional energy loss), and with `gradient_scene` given
+    ``gradients``, the full-order ∇_X q at the observed points (Nobs, A, dim_B), from ``scene.field_gradients``
+    (the target of the optional gradient loss); the loader stacks items into a
+    :class:`lnf.training.batch.SnapshotBatch`. With ``noise`` > 0, item
     (i, k) gets Gaussian noise of std noise·RMS (RMS of the split's observed values, resp. velocities) drawn
     from a generator seeded by (seed, i, k): the same noise in both modes, in any worker, after a restart.
     """
@@ -123,15 +125,16 @@ class SnapshotDataset(Dataset):
         values = values + (self.noise_std[0] * rng.standard_normal(values.shape)).astype(np.float32)
         return values, velocities + (self.noise_std[1] * rng.standard_normal(velocities.shape)).astype(np.float32)
 
-    def __getitem__(self, index: int) -> tuple[torch.Tensor, ...]:
+    def __getitem__(self, index: int) -> dict[str, torch.Tensor]:
         i, k = divmod(int(index), self.n_times)
         values, velocities = self._noisy(i, k, self._read(self.KEYS[0], i, k), self._read(self.KEYS[1], i, k))
-        item = (self.points[i], torch.from_numpy(np.ascontiguousarray(values)),
-                torch.from_numpy(np.ascontiguousarray(velocities)))
-        if self.potential is None and self.gradients is None:
-            return item
-        potential = self.potential[i, k] if self.potential is not None else torch.tensor(float("nan"))
-        return (*item, potential) if self.gradients is None else (*item, potential, self.gradients[i, k])
+        item = {"points": self.points[i], "values": torch.from_numpy(np.ascontiguousarray(values)),
+                "velocities": torch.from_numpy(np.ascontiguousarray(velocities))}
+        if self.potential is not None:
+            item["potential"] = self.potential[i, k]
+        if self.gradients is not None:
+            item["gradients"] = self.gradients[i, k]
+        return item
 
     def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """All items stacked: points (n, Nobs, dim_B), values and velocities (n, n_times, Nobs, A)."""
@@ -306,7 +309,7 @@ class SnapshotDataModule(pl.LightningDataModule):
         sampler = GlobalBatchSampler(len(dataset), self.batch_size, shuffle=shuffle, seed=self.shuffle_seed,
                                      drop_last=shuffle and len(dataset) > self.batch_size, rank=rank, world_size=world)
         return DataLoader(dataset, batch_size=sampler.per_rank_batch_size, sampler=sampler,
-                          num_workers=self.num_workers, persistent_workers=self.num_workers > 0,
+                          collate_fn=SnapshotBatch.collate, num_workers=self.num_workers, persistent_workers=self.num_workers > 0,
                           multiprocessing_context=worker_context() if self.num_workers > 0 else None)
 
     def train_dataloader(self) -> DataLoader:

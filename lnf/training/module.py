@@ -10,6 +10,7 @@ import torch
 from torch import Tensor
 
 from lnf.model import build_model
+from lnf.training.batch import SnapshotBatch
 from lnf.utils import check_numbers
 
 
@@ -52,17 +53,13 @@ class LNFModule(pl.LightningModule):
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         self.restored_fit_metrics = dict(checkpoint.get("lnf_fit_metrics") or {})
 
-    def _step(self, batch: tuple[Tensor, ...], stage: str, batch_idx: int = 0) -> Tensor:
-        # optional extras: the snapshots' potential energy (energy loss; NaN if only gradients follow) and ∇_X q
-        points, values, velocities, *extra = batch
-        potential = extra[0] if extra and not bool(torch.isnan(extra[0]).all()) else None
-        gradients = extra[1] if len(extra) > 1 else None
-        out = self.model.losses(points, values, velocities, potential, energy_factor=self.energy_factor(),
-                                gradients=gradients)
+    def _step(self, batch: SnapshotBatch, stage: str, batch_idx: int = 0) -> Tensor:
+        out = self.model.losses(batch.points, batch.values, batch.velocities, batch.potential,
+                                energy_factor=self.energy_factor(), gradients=batch.gradients)
         if stage == "train" and hasattr(self.model, "track_code_range"):
             # the box of a tabulated dynamics: the codes of the current epoch (restarted with its first batch)
             self.model.track_code_range(out["codes"], reset=batch_idx == 0)
-        bs = points.shape[0]
+        bs = len(batch)
         # epoch values are averaged over DDP ranks (each holds part of the global batch)
         log = functools.partial(self.log, batch_size=bs, on_step=stage == "train", on_epoch=True, sync_dist=True)
         log(f"{stage}/loss", out["loss"], prog_bar=True)
@@ -83,7 +80,7 @@ class LNFModule(pl.LightningModule):
             return 1.0
         return float(min(max((epoch - w + 1) / w, 0.0), 1.0))
 
-    def training_step(self, batch: tuple[Tensor, ...], batch_idx: int) -> Tensor:
+    def training_step(self, batch: SnapshotBatch, batch_idx: int) -> Tensor:
         loss = self._step(batch, "train", batch_idx)
         if not torch.isfinite(loss):
             raise FloatingPointError(
@@ -91,10 +88,10 @@ class LNFModule(pl.LightningModule):
                 f"(now {self.optimizer_cfg['lr']}) or model.step_size")
         return loss
 
-    def validation_step(self, batch: tuple[Tensor, ...], batch_idx: int) -> Optional[Tensor]:
+    def validation_step(self, batch: SnapshotBatch, batch_idx: int) -> Optional[Tensor]:
         return self._step(batch, "val") if self.model.trainable else None
 
-    def test_step(self, batch: tuple[Tensor, ...], batch_idx: int) -> Optional[Tensor]:
+    def test_step(self, batch: SnapshotBatch, batch_idx: int) -> Optional[Tensor]:
         # closed-form baselines have no training loss; their test metrics come from the evaluation callback
         return self._step(batch, "test") if self.model.trainable else None
 
