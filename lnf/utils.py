@@ -40,6 +40,8 @@ NUMBER_RULES: dict[str, tuple[str, float, Optional[float], str]] = {
     "model.velocity_weight": ("≥", 0, None, "λ_v of the velocity loss"),
     "model.energy_weight": ("≥", 0, None, "λ_E of the energy loss"),
     "model.gradient_weight": ("≥", 0, None, "λ_G of the gradient loss"),
+    "model.mass_condition_weight": ("≥", 0, None, "λ_M of the mass-conditioning loss"),
+    "model.mass_condition_max": ("≥", 1, None, "κ, the largest condition number of M̃ the mass-conditioning loss allows"),
     "model.resolution": ("int", 1, None, "grid points per axis of the full-order model"),
     "model.degree": ("int", 0, None, "the Legendre degree per axis"),
     "model.ridge": ("≥", 0, None, "the Tikhonov weight"),

@@ -63,7 +63,7 @@ class LNFModule(pl.LightningModule):
         # epoch values are averaged over DDP ranks (each holds part of the global batch)
         log = functools.partial(self.log, batch_size=bs, on_step=stage == "train", on_epoch=True, sync_dist=True)
         log(f"{stage}/loss", out["loss"], prog_bar=True)
-        for key in ("reconstruction", "projection", "velocity", "energy", "gradient"):
+        for key in ("reconstruction", "projection", "velocity", "energy", "gradient", "mass_condition"):
             if key in out:
                 log(f"{stage}/{key}", out[key])
         if stage == "train":
