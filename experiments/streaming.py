@@ -107,8 +107,8 @@ def child(args: argparse.Namespace) -> None:
     setup_seconds = time.perf_counter() - started
     # the loader alone: reads, masking, collation
     t0, seen = time.perf_counter(), 0
-    for i, (points, values, velocities) in enumerate(loader):
-        seen += values.shape[0]
+    for i, batch in enumerate(loader):
+        seen += len(batch)
         if i + 1 >= args.loader_batches:
             break
     loader_rate = seen / (time.perf_counter() - t0)
@@ -125,7 +125,7 @@ def child(args: argparse.Namespace) -> None:
 
         def on_train_batch_end(self, trainer, module, outputs, batch, batch_idx):
             if batch_idx >= args.warmup:
-                self.count += batch[1].shape[0]
+                self.count += len(batch)
 
     from omegaconf import OmegaConf
 
