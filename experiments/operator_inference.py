@@ -122,6 +122,21 @@ def evaluate(scene: Any, splits: dict[str, Any], rank: int) -> dict[str, Any]:
     return out
 
 
+def observed_row(study: S.Study, scene: Any, splits: dict[str, Any], rank: int, completion: Optional[int]
+                 ) -> Optional[dict[str, Any]]:
+    """OpInf given only lnf's sparse observations at `rank` (experiments/opinf_observed.py), its completion at rank
+    `completion` (None: cross-validated; fixed at 2 under --smoke); None, with a note, for a rank above the completion
+    rank (its extra modes would be round-off)."""
+    from opinf_observed import evaluate_observed
+
+    completion = completion if completion is not None else 2 if study.mode == "smoke" else None
+    if completion is not None and rank > completion:
+        print(f"[{study.name}] OpInf (observed) r = {rank} left out: the completed observations have rank {completion}",
+              flush=True)
+        return None
+    return evaluate_observed(scene, splits, rank, completion)
+
+
 def study_rows(study: S.Study, dims: list[int], sweep: str = "opinf_rank", observed: bool = True
                ) -> list[dict[str, Any]]:
     """Operator Inference as a baseline of a study (pareto.py, model_size.py) at each latent dimension d of `dims`:
@@ -134,24 +149,21 @@ def study_rows(study: S.Study, dims: list[int], sweep: str = "opinf_rank", obser
     round-off). Kept in
     study.rows and written to out/<sweep>/rows.json. A rank the training snapshots cannot give is left out with a
     note. Fits take seconds to minutes: rerun every time."""
-    from opinf_observed import evaluate_observed
-
     scene, _, splits = load_data(study)
     rows: list[dict[str, Any]] = []
-    completion = 2 if study.mode == "smoke" else None  # --smoke: fixed, the cross-validation takes a minute
+    completion = None  # the completion rank, once the first observed fit has chosen it
     folder = study.out / sweep
     where = str(folder.relative_to(S.ROOT) if folder.is_relative_to(S.ROOT) else folder)  # as studylib.collect
     for d in dims:
-        methods = [("opinf", evaluate)] + ([("opinf_observed", evaluate_observed)] if observed else [])
-        for method, run in methods:
-            if method == "opinf_observed" and completion is not None and 2 * d > completion:
-                print(f"[{study.name}] OpInf (observed) r = {2 * d} left out: the completed observations have rank "
-                      f"{completion}", flush=True)
-                continue
+        methods = ["opinf"] + (["opinf_observed"] if observed else [])
+        for method in methods:
             try:
-                row = run(scene, splits, 2 * d) if method == "opinf" else run(scene, splits, 2 * d, completion)
+                row = evaluate(scene, splits, 2 * d) if method == "opinf" else \
+                    observed_row(study, scene, splits, 2 * d, completion)
             except ValueError as err:
                 print(f"[{study.name}] {method} r = {2 * d} left out: {err}", flush=True)
+                continue
+            if row is None:
                 continue
             completion = row.get("completion_rank", completion)
             row.pop("candidates")
@@ -197,21 +209,15 @@ def main(argv=None) -> None:
             row = evaluate(scene, splits, rank)
         except ValueError as err:  # a rank the training snapshots cannot give
             raise SystemExit(f"--ranks {rank}: {err}") from err
-        rows.append(row)
+        new = [row]
         if args.observed:
-            from opinf_observed import evaluate_observed
-
-            completion = next((r["completion_rank"] for r in rows if "completion_rank" in r),
-                              2 if study.mode == "smoke" else None)  # --smoke: fixed, not cross-validated
-            if completion is None or rank <= completion:
-                rows.append(evaluate_observed(scene, splits, rank, completion))
-            else:
-                print(f"[operator_inference] OpInf (observed) r = {rank} left out: the completed observations have "
-                      f"rank {completion}", flush=True)
-        for row in rows[-2 if rows[-1] is not row else -1:]:
-            print(f"[operator_inference] {row['method']} r = {rank}: {row['operators']}, λ = {row['regularizer']:.3g}, "
-                  f"field error {S.fmt(row[f'{ERR}/all/median'])} (all), {S.fmt(row[f'{ERR}/in_horizon/median'])} "
-                  f"(in horizon), {row['diverged']} diverged; fit {row['fit_seconds']:.3g} s", flush=True)
+            completion = next((r["completion_rank"] for r in rows if "completion_rank" in r), None)
+            new += [r for r in [observed_row(study, scene, splits, rank, completion)] if r is not None]
+        rows += new
+        for r in new:
+            print(f"[operator_inference] {r['method']} r = {rank}: {r['operators']}, λ = {r['regularizer']:.3g}, "
+                  f"field error {S.fmt(r[f'{ERR}/all/median'])} (all), {S.fmt(r[f'{ERR}/in_horizon/median'])} "
+                  f"(in horizon), {r['diverged']} diverged; fit {r['fit_seconds']:.3g} s", flush=True)
         print(f"[operator_inference] r = {rank}: {time.perf_counter() - t0:.1f} s in all", flush=True)
     given = (f" --ranks {' '.join(map(str, args.ranks))}" if args.ranks != [1, 2, 4, 8] else "") + \
         (" --observed" if args.observed else "")

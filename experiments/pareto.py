@@ -43,7 +43,7 @@ def fill_frames(rows: list[dict]) -> None:
     import yaml
 
     for r in rows:
-        if "frames" not in r and "train_seconds" in r and "dir" in r:
+        if "frames" not in r and "train_seconds" in r:
             cfg = yaml.safe_load((S.ROOT / r["dir"] / ".hydra" / "config.yaml").read_text())
             r["frames"] = float(cfg["data"]["n_times"])
 
