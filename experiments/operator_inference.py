@@ -122,19 +122,24 @@ def evaluate(scene: Any, splits: dict[str, Any], rank: int) -> dict[str, Any]:
     return out
 
 
-def observed_row(study: S.Study, scene: Any, splits: dict[str, Any], rank: int, completion: Optional[int]
+def observed_row(study: S.Study, scene: Any, splits: dict[str, Any], rank: int, cache: dict[str, Any]
                  ) -> Optional[dict[str, Any]]:
-    """OpInf given only lnf's sparse observations at `rank` (experiments/opinf_observed.py), its completion at rank
-    `completion` (None: cross-validated; fixed at 2 under --smoke); None, with a note, for a rank above the completion
-    rank (its extra modes would be round-off)."""
-    from opinf_observed import evaluate_observed
+    """OpInf given only lnf's sparse observations at `rank` (experiments/opinf_observed.py). The gappy completion is
+    computed at the first call and kept in `cache` for the next ranks (its rank cross-validated; fixed at 2 under
+    --smoke). None, with a note, for a rank above the completion rank (its extra modes would be round-off)."""
+    from opinf_observed import complete_observations, evaluate_observed
 
-    completion = completion if completion is not None else 2 if study.mode == "smoke" else None
-    if completion is not None and rank > completion:
-        print(f"[{study.name}] OpInf (observed) r = {rank} left out: the completed observations have rank {completion}",
-              flush=True)
+    if "completion" not in cache:
+        cache["completion"] = complete_observations(scene, splits, 2 if study.mode == "smoke" else None)
+        c = cache["completion"]
+        print(f"[{study.name}] gappy completion: rank {c.rank} ({c.info['iterations']} sweeps, "
+              f"{'converged' if c.info['converged'] else 'not converged'}), {c.seconds:.1f} s", flush=True)
+    completion = cache["completion"]
+    if rank > completion.rank:
+        print(f"[{study.name}] OpInf (observed) r = {rank} left out: the completed observations have rank "
+              f"{completion.rank}", flush=True)
         return None
-    return evaluate_observed(scene, splits, rank, completion)
+    return evaluate_observed(scene, splits, rank, completion=completion)
 
 
 def study_rows(study: S.Study, dims: list[int], sweep: str = "opinf_rank", observed: bool = True
@@ -151,7 +156,7 @@ def study_rows(study: S.Study, dims: list[int], sweep: str = "opinf_rank", obser
     note. Fits take seconds to minutes: rerun every time."""
     scene, _, splits = load_data(study)
     rows: list[dict[str, Any]] = []
-    completion = None  # the completion rank, once the first observed fit has chosen it
+    cache: dict[str, Any] = {}  # the gappy completion, shared by the ranks
     folder = study.out / sweep
     where = str(folder.relative_to(S.ROOT) if folder.is_relative_to(S.ROOT) else folder)  # as studylib.collect
     for d in dims:
@@ -159,13 +164,12 @@ def study_rows(study: S.Study, dims: list[int], sweep: str = "opinf_rank", obser
         for method in methods:
             try:
                 row = evaluate(scene, splits, 2 * d) if method == "opinf" else \
-                    observed_row(study, scene, splits, 2 * d, completion)
+                    observed_row(study, scene, splits, 2 * d, cache)
             except ValueError as err:
                 print(f"[{study.name}] {method} r = {2 * d} left out: {err}", flush=True)
                 continue
             if row is None:
                 continue
-            completion = row.get("completion_rank", completion)
             row.pop("candidates")
             rows.append({**row, "sweep": sweep, "job": len(rows), "dir": where, "method": method, "knob": "r",
                          "model.latent_dim": d, "train_seconds": row["fit_seconds"]})
@@ -202,7 +206,7 @@ def main(argv=None) -> None:
     print(f"[operator_inference] {study.scene}: {len(train)}/{len(splits['val'])}/{len(splits['test'])} train/val/test "
           f"trajectories, {len(train.times)} samples (the first {train.train_times} for training), "
           f"{train.fields.shape[2]} fine points", flush=True)
-    rows = []
+    rows, cache = [], {}
     for rank in args.ranks:
         t0 = time.perf_counter()
         try:
@@ -211,8 +215,7 @@ def main(argv=None) -> None:
             raise SystemExit(f"--ranks {rank}: {err}") from err
         new = [row]
         if args.observed:
-            completion = next((r["completion_rank"] for r in rows if "completion_rank" in r), None)
-            new += [r for r in [observed_row(study, scene, splits, rank, completion)] if r is not None]
+            new += [r for r in [observed_row(study, scene, splits, rank, cache)] if r is not None]
         rows += new
         for r in new:
             print(f"[operator_inference] {r['method']} r = {rank}: {r['operators']}, λ = {r['regularizer']:.3g}, "

@@ -26,6 +26,7 @@ from __future__ import annotations
 import sys
 import time
 from pathlib import Path
+from dataclasses import dataclass
 from typing import Any, Optional
 
 import numpy as np
@@ -33,7 +34,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from operator_inference import ERR, mass_weights, split_controls  # noqa: E402
 
-COMPLETION_RANKS = (1, 2, 3, 4, 5, 6, 8)  # candidates of the completion's rank
+COMPLETION_RANKS = (1, 2, 3, 4, 6, 8)  # candidates of the completion's rank
 
 
 def to_fine(P: Any, x: np.ndarray) -> np.ndarray:
@@ -45,19 +46,34 @@ def to_fine(P: Any, x: np.ndarray) -> np.ndarray:
     return y.reshape(-1, n, T, A).transpose(1, 2, 0, 3)
 
 
-def evaluate_observed(scene: Any, splits: dict[str, Any], rank: int, completion_rank: Optional[int] = None,
-                      iterations: int = 500, tol: float = 1e-6) -> dict[str, Any]:
-    """Fit OpInf at `rank` on the gappy-completed observations (completion at `completion_rank`; None: the one
-    of COMPLETION_RANKS with the smallest error on held-out observations), roll out the test split from its
-    observed initial points, score it on the fine points. The splits share their coarse and fine points.
-    fit_seconds includes the completion (completion_seconds, with the rank's selection); decode_seconds: the
-    decoding of the reduced rollout and its interpolation to the fine points."""
-    from lnf import metrics as M
-    from lnf.baselines.gappy_pod import complete_snapshots, gappy_encode, interpolation_matrix, select_rank
-    from lnf.baselines.operator_inference import OperatorInference
+@dataclass
+class Completion:
+    """lnf's training and validation observations completed by gappy POD, shared by every OpInf rank fitted on them.
 
-    train, val, test = splits["train"], splits["val"], splits["test"]
-    T, K, n_tr = len(test.times), train.train_times, len(train.masks)
+    fields, velocities: (n_train + n_val, train_times, Nc, A) completed coarse samples; P (Nf, Nc) the coarse → fine
+    interpolation; mass (Nc,) POD weights; metric_weights (Nc,); rank, errors (the cross-validation's, or None),
+    info (of :func:`complete_snapshots`), seconds (the completion with its rank selection)."""
+
+    fields: np.ndarray
+    velocities: np.ndarray
+    P: Any
+    mass: np.ndarray
+    metric_weights: np.ndarray
+    rank: int
+    errors: Optional[dict[int, float]]
+    info: dict[str, Any]
+    seconds: float
+
+
+def complete_observations(scene: Any, splits: dict[str, Any], completion_rank: Optional[int] = None,
+                          iterations: int = 500, tol: float = 1e-6, cv_iterations: int = 40) -> Completion:
+    """Complete the observed coarse samples k < train_times of the training and validation trajectories at
+    `completion_rank` (None: the one of COMPLETION_RANKS with the smallest error on held-out observations, each
+    candidate given at most `cv_iterations` sweeps)."""
+    from lnf.baselines.gappy_pod import complete_snapshots, interpolation_matrix, select_rank
+
+    train, val = splits["train"], splits["val"]
+    K, test = train.train_times, splits["test"]
     start = time.perf_counter()
     P = interpolation_matrix(train.coarse_points, train.fine_points)
     mass = np.asarray(P.T @ mass_weights(scene, train))
@@ -71,13 +87,38 @@ def evaluate_observed(scene: Any, splits: dict[str, Any], rank: int, completion_
     spread = [np.std(x[np.broadcast_to(masks[:, None, :, None], x.shape)]) for x in (q, v)]
     s = spread[0] / spread[1] if spread[0] > 0 and spread[1] > 0 else 1.0
     A = q.shape[-1]
-    joint, options = np.concatenate([q, s * v], -1), dict(iterations=iterations, tol=tol, points=train.coarse_points)
-    completion_errors = None
+    joint, options = np.concatenate([q, s * v], -1), dict(tol=tol, points=train.coarse_points)
+    errors = None
     if completion_rank is None:  # cross-validated on held-out observations
         ranks = [r for r in COMPLETION_RANKS if r <= min(2 * A * masks.shape[1], len(masks) * K)]
-        completion_rank, completion_errors = select_rank(joint, masks, ranks, **options)
-    done, info = complete_snapshots(joint, masks, completion_rank, **options)
-    cq, cv, completion_seconds = done[..., :A], done[..., A:] / s, time.perf_counter() - start
+        completion_rank, errors = select_rank(joint, masks, ranks, iterations=min(iterations, cv_iterations),
+                                              **options)
+    done, info = complete_snapshots(joint, masks, completion_rank, iterations=iterations, **options)
+    return Completion(done[..., :A], done[..., A:] / s, P, mass, metric_weights, int(completion_rank), errors, info,
+                      time.perf_counter() - start)
+
+
+def evaluate_observed(scene: Any, splits: dict[str, Any], rank: int, completion_rank: Optional[int] = None,
+                      iterations: int = 500, tol: float = 1e-6, completion: Optional[Completion] = None
+                      ) -> dict[str, Any]:
+    """Fit OpInf at `rank` on the gappy-completed observations (`completion`, or computed here at
+    `completion_rank`, see :func:`complete_observations`), roll out the test split from its observed initial points,
+    score it on the fine points. The splits share their coarse and fine points. fit_seconds includes the completion
+    (completion_seconds, with the rank's selection; a completion shared by several ranks counts in each);
+    decode_seconds: the decoding of the reduced rollout and its interpolation to the fine points."""
+    from lnf import metrics as M
+    from lnf.baselines.gappy_pod import gappy_encode
+    from lnf.baselines.operator_inference import OperatorInference
+
+    if completion is None:
+        completion = complete_observations(scene, splits, completion_rank, iterations, tol)
+    train, val, test = splits["train"], splits["val"], splits["test"]
+    T, K, n_tr, A = len(test.times), train.train_times, len(train.masks), test.coarse_fields.shape[-1]
+    P, mass, metric_weights, info = completion.P, completion.mass, completion.metric_weights, completion.info
+    cq, cv = completion.fields, completion.velocities
+    Nf = test.fields.shape[2]
+    qw = np.full(Nf, 1.0 / Nf) if test.weights is None else np.asarray(test.weights, dtype=np.float64)
+    start = time.perf_counter() - completion.seconds
     model = OperatorInference(rank).fit(cq[:n_tr], cv[:n_tr], K, cq[n_tr:], cv[n_tr:], point_weights=mass,
                                         metric_weights=metric_weights, controls=split_controls(scene, train),
                                         val_controls=split_controls(scene, val))
@@ -112,10 +153,11 @@ def evaluate_observed(scene: Any, splits: dict[str, Any], rank: int, completion_
     out.update(method="OpInf (observed)", rank=rank, operators=record["operators"],
                regularizer=record["regularizer"], val_error=record["val_error"],
                velocity_weight=record["velocity_weight"], diverged=int(pred.diverged.sum()),
-               trajectories=int(len(pred.diverged)), fit_seconds=fit_seconds, completion_seconds=completion_seconds,
-               completion_rank=completion_rank, completion_errors=completion_errors,
+               trajectories=int(len(pred.diverged)), fit_seconds=fit_seconds, completion_seconds=completion.seconds,
+               completion_rank=completion.rank, completion_errors=completion.errors,
                completion_iterations=info["iterations"], completion_converged=info["converged"],
-               unobserved_points=info["unobserved_points"], observed_fraction=float(masks.mean()),
+               unobserved_points=info["unobserved_points"],
+               observed_fraction=float(np.concatenate([train.masks, val.masks]).mean()),
                rollout_seconds_per_trajectory=float(np.mean(pred.rollout_seconds)),
                decode_seconds_per_trajectory=float(decode_seconds), frames=T,
                fields_seconds_per_trajectory=float(np.mean(pred.rollout_seconds) + decode_seconds),

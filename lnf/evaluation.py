@@ -19,7 +19,7 @@ from torch import Tensor
 from lnf import metrics as M
 from lnf.decoding_table import DecodingTable, TabulatedField, check_decoding, code_box
 from lnf.integrators import Integrator, get_integrator
-from lnf.integrators.base import NOT_A_STEP_SIZE_PROBLEM
+from lnf.integrators.base import NOT_A_STEP_SIZE_PROBLEM, Trajectory
 from lnf.progress import progress_bar
 from lnf.reduced_model import ReducedModel
 from lnf.quadrature import Quadrature, QuadratureRule
@@ -623,6 +623,7 @@ def evaluate_rollouts(
     metrics.update(divergence_metrics(diverged, dt, float(times[0]), label=label, causes=initial_state_causes(
         model, dynamics, q0, v0, np.flatnonzero(diverged >= 0), quadrature),
         diagnoses=traj.extra.get("divergence_causes")))
+    metrics.update(substeps_metrics(traj, dt, label))
     metrics["rollout_seconds_per_trajectory"] = rollout_seconds / n
     metrics["rollout_seconds_per_step"] = rollout_seconds / max(T - 1, 1)
     metrics["decode_seconds_per_trajectory"] = decode_seconds / n  # all T frames on the N evaluation points
@@ -702,4 +703,19 @@ def long_horizon_energy(
                                                               (diverged >= 0).any() else None, q0, v0,
                                                               np.flatnonzero(diverged >= 0), quadrature),
                                   diagnoses=traj.extra.get("divergence_causes")))
+    out.update(substeps_metrics(traj, dt, "long-horizon energy check", suffix="_long"))
     return out
+
+
+def substeps_metrics(traj: Trajectory, dt: float, label: str, suffix: str = "") -> dict[str, float]:
+    """`substeps<suffix>`: the integration steps per step dt a rollout ended with, where the integrator's automatic
+    substeps raised them (a step stiff against the fastest reduced frequency), logged with where; {} otherwise."""
+    info = traj.extra.get("substeps")
+    if not info:
+        return {}
+    at = info["raised_at_steps"]
+    log.info("%s: the step dt = %g s was stiff against the fastest reduced frequency: %d substeps from the start, %d "
+             "at the end%s (integrator.max_substeps caps them; integrator.substeps sets the least)", label, dt,
+             info["initial"], info["final"], f", raised at step{'s' if len(at) > 1 else ''} "
+             f"{', '.join(map(str, at[:5]))}{' …' if len(at) > 5 else ''}" if at else "")
+    return {f"substeps{suffix}": float(info["final"])}

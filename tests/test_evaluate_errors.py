@@ -412,6 +412,29 @@ def test_divergence_on_the_way_is_read_against_the_fastest_reduced_frequency(ckp
     assert "the step resolves it, so the step size is not the cause" in warned and "step-size" not in warned
 
 
+def test_automatic_substeps_are_reported_where_they_rose(ckpt, caplog):
+    """A step the integrator finds stiff (here an RK4 that asks for 3 substeps wherever it looks; reading ω_max is
+    tested in tests/test_integrators.py) is taken in more substeps; the evaluation reports how many (`substeps`,
+    `substeps_long`) and logs it. A rollout that is not stiff reports nothing."""
+    from lnf.evaluation import evaluate_rollouts, long_horizon_energy
+    from lnf.integrators import RK4
+
+    class TightRK4(RK4):
+        def substeps_for(self, dynamics, q, v, dt, t, at_least, rows=None):
+            return max(at_least, 3)
+
+    model, states, times, points = _setup(ckpt)
+    with caplog.at_level(logging.INFO, logger="lnf.evaluation"):
+        m = evaluate_rollouts(model, states, times, points, 0.3, integrator=TightRK4(), label="test rollout").metrics
+        long = long_horizon_energy(model, states[:, 0], points, 0.05, 20, integrator=TightRK4())
+    assert m["substeps"] == 3 and long["substeps_long"] == 3 and m["diverged_count"] == 0.0
+    logged = " ".join(r.getMessage() for r in caplog.records if r.name == "lnf.evaluation")
+    assert f"test rollout: the step dt = 0.05 s was stiff against the fastest reduced frequency: {int(m['substeps'])} " \
+           "substeps from the start" in logged, logged
+    plain = evaluate_rollouts(model, states, times, points, 0.3, integrator="rk4").metrics
+    assert "substeps" not in plain
+
+
 def test_long_horizon_divergence_metrics_and_warning(ckpt, caplog):
     from lnf.evaluation import long_horizon_energy
 

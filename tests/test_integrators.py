@@ -1,4 +1,6 @@
 """Orders of accuracy and energy behaviour on the analytic pendulum."""
+import math
+
 import numpy as np
 import pytest
 import torch
@@ -97,7 +99,7 @@ def test_the_default_midpoint_carries_a_stiff_step_and_stops_wasting_fixed_point
     has needed it, later solves try 3 fixed-point iterations before Newton instead of max_iter = 50."""
     q0 = torch.tensor([[1.2], [0.3]], dtype=torch.float64)
     v0 = torch.tensor([[0.0], [1.0]], dtype=torch.float64)
-    solver = ImplicitMidpoint(order=4)
+    solver = ImplicitMidpoint(order=4, max_substeps=1)  # fixed substeps: the stiff step itself goes to Newton
     assert solver.newton
     traj = solver.integrate(dyn, q0, v0, 0.5, 40, on_divergence="mark")
     assert not traj.diverged.any() and solver.newton_solves > 0
@@ -138,6 +140,19 @@ class _Spring:
         return torch.eye(q.shape[-1], dtype=q.dtype).expand(q.shape[0], -1, -1)
 
 
+class _SpringHamiltonian(_Spring):
+    """The same spring with the Hamiltonian interface of the implicit midpoint rule (unit mass: p̃ = q̃̇)."""
+
+    def momentum(self, q, v):
+        return v
+
+    def velocity(self, q, p):
+        return p
+
+    def hamiltonian_derivatives(self, q, p, t=0.0):
+        return p, self.acceleration(q, p, t)
+
+
 class _Runaway:
     """q̈ = 50 q³: escapes in finite time whatever the step (a potential unbounded below)."""
 
@@ -150,13 +165,51 @@ def test_divergence_message_names_a_stiff_step_and_the_substeps_that_cure_it():
 
     q0, v0 = torch.ones(2, 1, dtype=torch.float64), torch.zeros(2, 1, dtype=torch.float64)
     assert torch.allclose(fastest_frequency(_Spring(40.0), q0, v0), torch.full((2,), 40.0, dtype=torch.float64))
-    with pytest.raises(RolloutDivergedError, match=r"ω_max = 200 rad/s \(h·ω_max = 10 .*stiff.*substeps ≥ 4"):
-        RK4().integrate(_Spring(200.0), q0, v0, 0.05, 100)
-    RK4(substeps=4).integrate(_Spring(200.0), q0, v0, 0.05, 100)  # the advice works
-    marked = RK4().integrate(_Spring(200.0), q0, v0, 0.05, 100, on_divergence="mark")
+    with pytest.raises(RolloutDivergedError, match=r"ω_max = 200 rad/s \(h·ω_max = 10 .*stiff.*substeps ≥ 5"):
+        RK4(max_substeps=1).integrate(_Spring(200.0), q0, v0, 0.05, 100)
+    RK4(substeps=5, max_substeps=1).integrate(_Spring(200.0), q0, v0, 0.05, 100)  # the advice works
+    marked = RK4(max_substeps=1).integrate(_Spring(200.0), q0, v0, 0.05, 100, on_divergence="mark")
     assert set(marked.extra["divergence_causes"]) == {0, 1}
+    with pytest.raises(RolloutDivergedError, match=r"max_substeps = 3: raise it.*substeps ≥ 5"):
+        RK4(max_substeps=3).integrate(_Spring(200.0), q0, v0, 0.05, 100)  # the cap of the automatic substeps
     with pytest.raises(RolloutDivergedError, match=r"grows at .* 1/s.*step size is not the cause"):
         RK4().integrate(_Runaway(), q0, v0, 0.001, 10000)
+
+
+class _Stiffening:
+    """q̈ = −ω(t)² q with ω = 10 rad/s until t = 0.52 s, 400 rad/s after: a step fine at the start turns stiff
+    between two reads of the fastest frequency."""
+
+    def acceleration(self, q, v, t=0.0):
+        return -(10.0 if t < 0.52 else 400.0) ** 2 * q
+
+
+@pytest.mark.parametrize("cls", [RK4, ImplicitMidpoint])
+def test_automatic_substeps_carry_a_stiff_step_by_default(cls):
+    """By default a step stiff against the fastest reduced frequency is taken in ⌈h·ω_max / stiff_step⌉ substeps
+    (read at the initial states), and the rollout is the one fixed substeps give; with them off it is not."""
+    q0, v0 = torch.ones(2, 1, dtype=torch.float64), torch.zeros(2, 1, dtype=torch.float64)
+    spring = _Spring(200.0) if cls is RK4 else _SpringHamiltonian(200.0)
+    need = math.ceil(0.05 * 200.0 / cls.stiff_step)
+    auto = cls().integrate(spring, q0, v0, 0.05, 40)
+    fixed = cls(substeps=need, max_substeps=1).integrate(spring, q0, v0, 0.05, 40)
+    assert auto.extra["substeps"] == {"initial": need, "final": need, "raised_at_steps": []}
+    assert torch.equal(auto.q, fixed.q) and not auto.diverged.any()
+    assert bool(auto.q.abs().max() <= 1.0 + 1e-6)  # both keep a linear spring within its amplitude at h·ω ≤ 2
+    if cls is RK4:  # RK4 without them runs away; the midpoint rule stays bounded (A-stable) but out of phase
+        assert RK4(max_substeps=1).integrate(spring, q0, v0, 0.05, 40, on_divergence="mark").diverged.all()
+
+
+def test_automatic_substeps_rise_where_a_rollout_turns_stiff_and_retake_that_step():
+    q0, v0 = torch.ones(1, 1, dtype=torch.float64), torch.zeros(1, 1, dtype=torch.float64)
+    traj = RK4().integrate(_Stiffening(), q0, v0, 0.05, 60)
+    assert not traj.diverged.any() and traj.extra["substeps"]["initial"] == 1
+    assert traj.extra["substeps"]["final"] == 10 and traj.extra["substeps"]["raised_at_steps"]
+    assert min(traj.extra["substeps"]["raised_at_steps"]) > 10  # where it blew up, after t = 0.52 s
+    # retaken from the last checked state (t = 0), not from the blown-up one: RK4 at h·ω ≤ 2 keeps |q| ≤ 1
+    assert bool(traj.q.abs().max() <= 1.0 + 1e-6)
+    fixed = RK4(substeps=10, max_substeps=1).integrate(_Stiffening(), q0, v0, 0.05, 60)
+    assert torch.equal(traj.q, fixed.q)
 def test_an_integrator_config_builds_the_class_it_names():
     """conf/integrator/*.yaml give a `_target_`: the class is built from it (not a name guessed from it)."""
     integ = get_integrator({"_target_": "lnf.integrators.ImplicitMidpoint", "order": 2, "substeps": 3})

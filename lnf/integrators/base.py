@@ -78,11 +78,13 @@ def fastest_frequency(dynamics: Dynamics, q: Tensor, v: Tensor, t: float = 0.0) 
 
 
 def divergence_diagnosis(dynamics: Dynamics, q: Tensor, v: Tensor, h: float, t: float, integrator: str,
-                         substeps: int = 1) -> str:
+                         substeps: int = 1, limit: Optional[float] = None, max_substeps: Optional[int] = None) -> str:
     """Why trajectories diverged on the way, read at their last finite state (q, v) (B, d) with steps of `h` [s]
     (`substeps` per dt):
     the step against the fastest reduced frequency (a stiff step, cured by substeps), or a step that resolves it (the
-    reduced dynamics itself runs away, which a smaller step will not cure), with M̃'s condition number."""
+    reduced dynamics itself runs away, which a smaller step will not cure), with M̃'s condition number. `limit`: the
+    h·ω_max the integrator takes without trouble (None: 2.8 for rk4, RK4's stability bound, else 1.0);
+    `max_substeps`: the automatic substeps' cap the rollout already reached, if it did."""
     try:
         with torch.no_grad():
             eig = stiffness_eigenvalues(dynamics, q, v, t)
@@ -93,15 +95,19 @@ def divergence_diagnosis(dynamics: Dynamics, q: Tensor, v: Tensor, h: float, t: 
     except Exception:  # noqa: BLE001 - a diagnosis only: the divergence is reported either way
         return "try a smaller dt, integrator.substeps or another integrator"
     hw = abs(h) * omega
-    limit = 2.8 if integrator == "rk4" else 1.0  # RK4's stability bound; the midpoint solve's easy range
+    if limit is None:
+        limit = 2.8 if integrator == "rk4" else 1.0  # RK4's stability bound; the midpoint solve's easy range
     mass = f", M̃'s condition number {cond:.3g}" if math.isfinite(cond) else ""
     if growth > 0.5 * omega > 0:
         mass += f"; a direction grows at {growth:.4g} 1/s: the pulled-back potential is concave there"
     where = f"at the last finite state the fastest reduced frequency is ω_max = {omega:.4g} rad/s (h·ω_max = {hw:.3g}" \
             f" at step h = {abs(h):.3g} s{mass})"
     if hw > limit:
-        need = substeps * math.ceil(hw / limit)
-        return (f"{where}: the step is stiff against it. Take integrator.substeps ≥ {need} (h·ω_max ≤ {limit:g})"
+        need = math.ceil(substeps * hw / limit * (1 - 1e-6))  # ω from finite differences: ~1e-8 off
+        capped = (f" (the automatic substeps stopped at integrator.max_substeps = {max_substeps}: raise it)"
+                  if max_substeps is not None and need > max_substeps else "")
+        return (f"{where}: the step is stiff against it{capped}. Take integrator.substeps ≥ {need} "
+                f"(h·ω_max ≤ {limit:g})"
                 + (" or integrator=implicit_midpoint (A-stable, Newton's method for stiff steps)" if integrator == "rk4"
                    else " or keep integrator.newton=true"))
     return (f"{where}: the step resolves it, so the step size is not the cause. The reduced dynamics itself runs away "
@@ -134,23 +140,50 @@ class Integrator:
     """Base class. `integrate` rolls out `steps` steps of size `dt`, recording every `record_every`.
 
     Args:
-        substeps: each step of size dt is taken as `substeps` steps of size dt/substeps.
+        substeps: each step of size dt is taken as (at least) `substeps` steps of size dt/substeps.
         max_abs: a state with |q̃| or |q̃̇| above this counts as diverged.
+        max_substeps: automatic substeps (fixed-step methods): where a step h is stiff against the fastest reduced
+            frequency ω_max (h·ω_max above the method's `stiff_step`), at the initial states or at a step where a
+            trajectory diverged, the rollout takes more substeps, up to `max_substeps`, and retries that step
+            (default 64; 1, or any value ≤ `substeps`: fixed substeps).
     """
 
     name = "integrator"
+    stiff_step = 1.0  # the h·ω_max a method takes without trouble (its stability bound, or its solve's easy range)
+    stiffness_check_every = 20  # steps between two reads of the fastest frequency (automatic substeps)
 
-    def __init__(self, substeps: int = 1, max_abs: float = 1e6) -> None:
+    def __init__(self, substeps: int = 1, max_abs: float = 1e6, max_substeps: int = 64) -> None:
         if not isinstance(substeps, (int, float)) or not math.isfinite(substeps) or int(substeps) != substeps \
                 or substeps < 1:
             raise ValueError(f"integrator.substeps must be an integer ≥ 1, got {substeps!r}")
         if not (isinstance(max_abs, (int, float)) and max_abs > 0):  # inf: no bound, only non-finite states diverge
             raise ValueError(f"integrator.max_abs must be a number > 0, got {max_abs!r}")
+        if isinstance(max_substeps, bool) or not isinstance(max_substeps, (int, float)) \
+                or not math.isfinite(max_substeps) or int(max_substeps) != max_substeps or max_substeps < 1:
+            raise ValueError(f"integrator.max_substeps must be an integer ≥ 1 (1: fixed substeps), got {max_substeps!r}")
         self.substeps = int(substeps)
+        self.max_substeps = max(int(max_substeps), self.substeps)
         self.max_abs = float(max_abs)
 
     def __repr__(self) -> str:
-        return f"{type(self).__name__}(substeps={self.substeps})"
+        auto = f", max_substeps={self.max_substeps}" if self.max_substeps > self.substeps else ""
+        return f"{type(self).__name__}(substeps={self.substeps}{auto})"
+
+    def substeps_for(self, dynamics: Dynamics, q: Tensor, v: Tensor, dt: float, t: float, at_least: int,
+                     rows: Optional[Tensor] = None) -> int:
+        """The substeps (≥ `at_least`, ≤ max_substeps) that bring h·ω_max to the method's `stiff_step` at the states
+        (q, v) (B, d) (of `rows` (B,) bool, None: all), ω_max the fastest reduced frequency there
+        (:func:`fastest_frequency`, on the whole batch: a forced scene's controls have its shape; 2d evaluations of
+        the acceleration); `at_least` where it cannot be read (a non-finite acceleration, dynamics that raise)."""
+        if self.max_substeps <= at_least or (rows is not None and not bool(rows.any())):
+            return at_least
+        try:
+            omega = fastest_frequency(dynamics, q, v, t)
+            omega = float(torch.nan_to_num(omega if rows is None else omega[rows], nan=0.0).max())
+        except Exception:  # noqa: BLE001 - no frequency, no automatic substeps: the rollout reports what happens
+            return at_least
+        need = math.ceil(abs(dt) * omega / self.stiff_step * (1 - 1e-6))  # ω from finite differences: ~1e-8 off
+        return int(min(self.max_substeps, max(at_least, need)))
 
     def integrate(self, dynamics: Dynamics, q0: Tensor, v0: Tensor, dt: float, steps: int,
                   record_every: int = 1, t0: float = 0.0, on_divergence: str = "raise",
@@ -198,7 +231,8 @@ class FixedStepIntegrator(Integrator):
                   progress: Optional[Callable[[int], None]] = None) -> Trajectory:
         self._check_args(q0, v0, dt, steps, record_every, on_divergence)
         B = q0.shape[0]
-        h = dt / self.substeps
+        substeps = initial = self.substeps_for(dynamics, q0, v0, dt, t0, self.substeps)
+        auto = self.max_substeps > self.substeps
         n_rec = steps // record_every + 1
         qs = q0.new_full((B, n_rec, q0.shape[1]), float("nan"))
         vs = torch.full_like(qs, float("nan"))
@@ -208,20 +242,37 @@ class FixedStepIntegrator(Integrator):
         state = self._to_internal(dynamics, q0, v0)
         t = t0
         causes: dict[int, str] = {}  # trajectory → why it diverged on the way (divergence_diagnosis)
-        for n in range(1, steps + 1):
+        raised: list[int] = []  # steps at which the automatic substeps went up
+        # the last state whose step was checked against the fastest frequency: a stiff step that blows up later is
+        # retaken from there (the states in between may be wrong without being non-finite yet)
+        mark = (1, state, alive.clone(), diverged.clone())
+        n, done = 1, 0
+        while n <= steps:
+            if auto and n > 1 and (n - 1) % self.stiffness_check_every == 0 and substeps < self.max_substeps:
+                q_now, v_now = self._to_qv(dynamics, state)
+                substeps = self._raise(dynamics, q_now, v_now, alive, dt, t0 + (n - 1) * dt, substeps, n, raised)
+                mark = (n, state, alive.clone(), diverged.clone())
             before = state
-            for k in range(self.substeps):
-                state = self.step(dynamics, state, h, t0 + (n - 1) * dt + k * h)
+            state = self._advance(dynamics, before, dt, substeps, t0 + (n - 1) * dt)
             t = t0 + n * dt
             bad = self._bad(*state) & alive
+            if bad.any() and auto and substeps < self.max_substeps:  # a stiff step? retake it from the mark
+                q_last, v_last = self._to_qv(dynamics, before)
+                more = self._raise(dynamics, q_last, v_last, bad, dt, t - dt, substeps, n, raised)
+                if more > substeps:
+                    substeps = more
+                    n, state, alive, diverged = mark[0], mark[1], mark[2].clone(), mark[3].clone()
+                    causes = {i: c for i, c in causes.items() if not bool(alive[i])}
+                    continue
             if bad.any():
                 rows = bad.nonzero().flatten().tolist()
                 cause = initial_state_cause(dynamics, q0, v0, rows, t0) if n == 1 else None
                 diagnosis = None
                 if cause is None:
                     q_last, v_last = self._to_qv(dynamics, before)
-                    diagnosis = divergence_diagnosis(dynamics, q_last[rows], v_last[rows], h, t - dt, self.name,
-                                                     self.substeps)
+                    diagnosis = divergence_diagnosis(dynamics, q_last[rows], v_last[rows], dt / substeps, t - dt,
+                                                     self.name, substeps, self.stiff_step,
+                                                     self.max_substeps if auto else None)
                     causes.update(dict.fromkeys(rows, diagnosis))
                 if on_divergence == "raise":
                     raise RolloutDivergedError(n, t, rows, self.name, dt, cause, diagnosis)
@@ -232,13 +283,38 @@ class FixedStepIntegrator(Integrator):
                 # freeze dead trajectories at a harmless state so they do not poison batched solves
                 state = tuple(torch.where(alive[:, None], s, s0) for s, s0 in
                               zip(state, self._to_internal(dynamics, q0, v0)))
-            if progress is not None:
+            if progress is not None and n > done:
                 progress(1)
+            done = max(done, n)
             if n % record_every == 0:
                 q, v = self._to_qv(dynamics, state)
                 r = n // record_every
                 qs[:, r] = torch.where(alive[:, None], q, float("nan"))
                 vs[:, r] = torch.where(alive[:, None], v, float("nan"))
+            n += 1
         times = t0 + dt * record_every * torch.arange(n_rec, dtype=torch.float64)
-        return Trajectory(times=times, q=qs, v=vs, diverged_step=diverged, steps=steps, dt=dt,
-                          extra={"divergence_causes": causes} if causes else {})
+        extra: dict = {"divergence_causes": causes} if causes else {}
+        if substeps > self.substeps:
+            extra["substeps"] = {"initial": initial, "final": substeps, "raised_at_steps": raised}
+        return Trajectory(times=times, q=qs, v=vs, diverged_step=diverged, steps=steps, dt=dt, extra=extra)
+
+    def _raise(self, dynamics: Dynamics, q: Tensor, v: Tensor, rows: Tensor, dt: float, t: float, substeps: int,
+               n: int, raised: list[int]) -> int:
+        """The automatic substeps for the states (q, v) of `rows` at step n (never fewer than `substeps`); n noted
+        in `raised` where they go up."""
+        more = self.substeps_for(dynamics, q, v, dt, t, substeps, rows)
+        if more > substeps:
+            raised.append(n)
+            self._substeps_raised()
+        return more
+
+    def _substeps_raised(self) -> None:
+        """Told when the automatic substeps go up (a method may drop what it learnt about the stiffer step)."""
+
+    def _advance(self, dynamics: Dynamics, state: tuple[Tensor, ...], dt: float, substeps: int, t: float
+                 ) -> tuple[Tensor, ...]:
+        """One step dt from `state` at time t, as `substeps` steps of dt / substeps."""
+        h = dt / substeps
+        for k in range(substeps):
+            state = self.step(dynamics, state, h, t + k * h)
+        return state

@@ -15,7 +15,7 @@ class Dopri5(Integrator):
     name = "dopri5"
 
     def __init__(self, rtol: float = 1e-9, atol: float = 1e-9, substeps: int = 1, max_abs: float = 1e6) -> None:
-        super().__init__(substeps=substeps, max_abs=max_abs)
+        super().__init__(substeps=substeps, max_abs=max_abs, max_substeps=1)  # adaptive: its own step control
         for key, value in (("rtol", rtol), ("atol", atol)):
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
                 raise ValueError(f"integrator.{key} must be a finite number > 0, got {value!r}")

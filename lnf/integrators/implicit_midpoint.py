@@ -22,10 +22,11 @@ from lnf.integrators.base import FixedStepIntegrator
 
 class ImplicitMidpoint(FixedStepIntegrator):
     name = "implicit_midpoint"
+    stiff_step = 1.0  # h·ω_max: the fixed-point iteration contracts; the phase error of that mode stays under 8 %
 
     def __init__(self, substeps: int = 1, order: int = 4, tol: float = 1e-12, max_iter: int = 50,
-                 max_abs: float = 1e6, newton: bool = True) -> None:
-        super().__init__(substeps=substeps, max_abs=max_abs)
+                 max_abs: float = 1e6, newton: bool = True, max_substeps: int = 64) -> None:
+        super().__init__(substeps=substeps, max_abs=max_abs, max_substeps=max_substeps)
         if order not in (2, 4):
             raise ValueError(f"integrator.order must be 2 or 4 for implicit_midpoint, got {order!r}")
         if not isinstance(max_iter, (int, float)) or not math.isfinite(max_iter) or int(max_iter) != max_iter \
@@ -58,6 +59,9 @@ class ImplicitMidpoint(FixedStepIntegrator):
         self._stiff = False  # set once a step of this rollout needed Newton's method
         # the last two entries carry the previous step's rates (q̃̇ₘ, ṗₘ): the predictor of the next solve
         return q, p, v.clone(), torch.zeros_like(p)
+
+    def _substeps_raised(self) -> None:
+        self._stiff = False  # the smaller step may not need Newton's method: start from the fixed-point iteration again
 
     def _to_qv(self, dynamics, state: tuple[Tensor, ...]) -> tuple[Tensor, Tensor]:
         q, p = state[0], state[1]
