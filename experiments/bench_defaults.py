@@ -1,9 +1,9 @@
 """Each scene's default run, whole, against a baseline commit's default run measured in the same session.
 
-    python experiments/bench_defaults.py                                  # the pendulum, this checkout alone
-    python experiments/bench_defaults.py --baseline bcb7020               # + that commit's defaults, same machine
-    python experiments/bench_defaults.py --scenes pendulum bump --baseline bcb7020
-    python experiments/bench_defaults.py --smoke                          # tiny settings (the test suite)
+    python -m experiments.bench_defaults                                  # the pendulum, this checkout alone
+    python -m experiments.bench_defaults --baseline bcb7020               # + that commit's defaults, same machine
+    python -m experiments.bench_defaults --scenes pendulum bump --baseline bcb7020
+    python -m experiments.bench_defaults --smoke                          # tiny settings (the test suite)
 
 For every scene and checkout, one after the other (never two at once): ``python -m lnf.train
 +experiment=<scene>`` with the checkout first on ``PYTHONPATH`` (a baseline is checked out with ``git worktree``
@@ -34,13 +34,11 @@ import time
 from pathlib import Path
 from typing import Any, Optional
 
+from experiments.bench_training import baseline_worktree, cpu_name
+from experiments.studylib import SMOKE_DATA, SMOKE_NEURAL
+from lnf.tempfiles import write_text_atomic
+
 ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT / "experiments"))
-
-from bench_training import baseline_worktree, cpu_name  # noqa: E402
-from studylib import SMOKE_DATA, SMOKE_NEURAL  # noqa: E402
-
-from lnf.tempfiles import write_text_atomic  # noqa: E402
 
 SMOKE = [*SMOKE_DATA, *SMOKE_NEURAL, "evaluation.long_steps=0", "evaluation.every_n_epochs=0"]
 COMMON = ["logger=csv", "evaluation.figures=0", "trainer.enable_progress_bar=false"]
@@ -158,7 +156,7 @@ def table(rows: list[dict[str, Any]]) -> str:
 
 
 def main(argv: Optional[list[str]] = None) -> None:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+    p = argparse.ArgumentParser(prog="python -m experiments.bench_defaults", description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--scenes", nargs="+", default=["pendulum"], help="experiment configs (conf/experiment/)")
     p.add_argument("--baseline", default=None, metavar="REV", help="a commit whose defaults are measured too")
@@ -191,7 +189,7 @@ def main(argv: Optional[list[str]] = None) -> None:
             if args.baseline:
                 subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(checkouts["baseline"])],
                                capture_output=True)
-    command = "python experiments/bench_defaults.py --scenes " + " ".join(args.scenes) + (
+    command = "python -m experiments.bench_defaults --scenes " + " ".join(args.scenes) + (
         f" --baseline {args.baseline}" if args.baseline else "") + (" --smoke" if args.smoke else "") + (
         " --override " + " ".join(args.override) if args.override else "")
     import torch

@@ -5,7 +5,7 @@ the baseline is the straightforward torch.func implementation (J and H by nested
 at a time). Also prints a FLOP bound: the matmul FLOPs of value, J and H at the quadrature points divided
 by the matmul throughput measured on this machine in the same run.
 
-    python experiments/bench_rollout_step.py [--threads 2] [--order 8] [--batch 1 4 16]
+    python -m experiments.bench_rollout_step [--threads 2] [--order 8] [--batch 1 4 16]
 """
 from __future__ import annotations
 
@@ -62,7 +62,8 @@ def matmul_throughput(rows: int, width: int) -> float:
 
 
 def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(prog="python -m experiments.bench_rollout_step", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--order", type=int, default=8, help="Gauss–Legendre nodes per axis (N = order²)")
     p.add_argument("--batch", type=int, nargs="+", default=[1, 4, 16])

@@ -1,8 +1,8 @@
 """Training step and decoding against their FLOP bounds, and against a baseline commit measured in the same run.
 
-    python experiments/bench_training.py                       # this checkout alone
-    python experiments/bench_training.py --baseline 75a887b    # + that commit, in a temporary git worktree
-    python experiments/bench_training.py --smoke               # tiny sizes (the test suite)
+    python -m experiments.bench_training                       # this checkout alone
+    python -m experiments.bench_training --baseline 75a887b    # + that commit, in a temporary git worktree
+    python -m experiments.bench_training --smoke               # tiny sizes (the test suite)
 
 Measures, with the pendulum experiment's defaults (width 256, depth 2, K = 3, d = 1, a batch of 32 snapshots
 observed on 256 points with velocities; decoding 16 trajectories × 100 frames on the 64² test grid):
@@ -19,7 +19,7 @@ gives each figure of this checkout as a ratio to the baseline's. Rounds alternat
 (``--rounds``, default 3) and keep each one's fastest time, so a busy moment on a shared machine does not decide. Jets per step are counted by wrapping
 ``ModulatedSiren.jet`` for one step, so the count is the code's, not a formula's. Prints a Markdown table and
 writes it with its provenance as ``summary.md``, beside the raw ``bench_training.json``, into
-``outputs/studies/bench_training/`` (or ``--out DIR``), atomically; ``python experiments/results_tables.py
+``outputs/studies/bench_training/`` (or ``--out DIR``), atomically; ``python -m experiments.results_tables
 --collect bench_training`` copies them into ``results/`` for the documentation's table.
 """
 from __future__ import annotations
@@ -175,13 +175,16 @@ def baseline_worktree(rev: str, into: Path) -> Path:
 
 
 def measure_in(checkout: Path, mode: str, threads: int) -> dict[str, Any]:
-    """`measure` run in a subprocess with `checkout` first on PYTHONPATH (the package found there, not this one)."""
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(checkout), os.environ.get("PYTHONPATH", "")])}
-    code = ("import json, sys; sys.path.insert(0, sys.argv[1]); sys.path.insert(0, sys.argv[2]);"
-            "sys.meta_path = [f for f in sys.meta_path if 'editable' not in repr(f).lower()];"
-            "import bench_training as b; print('RESULT' + json.dumps(b.measure(b.SIZES[sys.argv[3]], int(sys.argv[4]))))")
-    proc = subprocess.run([sys.executable, "-c", code, str(checkout), str(Path(__file__).parent), mode, str(threads)],
-                          env=env, capture_output=True, text=True, cwd=str(checkout))
+    """`measure` (this file's, imported from this checkout's experiments/ as the module `bench_training`) run in a
+    subprocess with `checkout` first on PYTHONPATH (the lnf package found there, not this one); the caller's own
+    PYTHONPATH entries follow."""
+    path = [str(checkout), str(Path(__file__).resolve().parent), os.environ.get("PYTHONPATH", "")]
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in path if p)}
+    code = ("import json, sys; sys.meta_path = [f for f in sys.meta_path if 'editable' not in repr(f).lower()];"
+            "import bench_training as b;"
+            "print('RESULT' + json.dumps(b.measure(b.SIZES[sys.argv[1]], int(sys.argv[2]))))")
+    proc = subprocess.run([sys.executable, "-c", code, mode, str(threads)], env=env, capture_output=True, text=True,
+                          cwd=str(checkout))
     if proc.returncode != 0:
         sys.exit(f"bench_training.py: measuring {checkout} failed:\n{proc.stderr[-3000:]}")
     line = [ln for ln in proc.stdout.splitlines() if ln.startswith("RESULT")][-1]
@@ -218,7 +221,7 @@ def table(rows: dict[str, dict[str, Any]], peak: float) -> str:
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m experiments.bench_training", description=__doc__.split("\n\n")[0])
     parser.add_argument("--baseline", help="a git revision to measure in the same run (e.g. a commit of main)")
     parser.add_argument("--smoke", action="store_true", help="tiny sizes, for the test suite")
     parser.add_argument("--threads", type=int, default=os.cpu_count() or 1, help="torch threads (default: all cores)")
@@ -253,7 +256,7 @@ def main(argv: list[str] | None = None) -> None:
     print(f"[bench] float32 GEMM peak {peak / 1e9:.1f} GFLOP/s on {args.threads} threads", flush=True)
     head = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"], capture_output=True,
                           text=True).stdout.strip()
-    command = "python experiments/bench_training.py" + (" --smoke" if args.smoke else "") + (
+    command = "python -m experiments.bench_training" + (" --smoke" if args.smoke else "") + (
         f" --baseline {args.baseline}" if args.baseline else "")
     where = (f"Machine: {cpu_name()}, {os.cpu_count()} cores, {args.threads} torch threads, torch {torch.__version__}. "
              f"Command: `{command}`. Measured {time.strftime('%Y-%m-%d %H:%M %Z')}, best of {args.rounds} alternating "
@@ -269,7 +272,7 @@ def main(argv: list[str] | None = None) -> None:
                                                               indent=2))
     write_text_atomic(out / "summary.md", text)
     print(f"[bench] wrote {out / 'summary.md'}; collect it with "
-          f"`python experiments/results_tables.py --collect bench_training={out}`")
+          f"`python -m experiments.results_tables --collect bench_training={out}`")
 
 
 def cpu_name() -> str:

@@ -1,7 +1,7 @@
 """Cost scaling: rollout time and peak memory against evaluation points and trajectories rolled out at once.
 
-    python experiments/cost_scaling.py          # models of the reduced stability study (trained if missing)
-    python experiments/cost_scaling.py --full   # models of the full stability study
+    python -m experiments.cost_scaling          # models of the reduced stability study (trained if missing)
+    python -m experiments.cost_scaling --full   # models of the full stability study
 
 For each method (our model, the black-box latent MLP, POD-Galerkin k = 1, the full-order model) and
 each evaluation grid 16² … 256² (16 trajectories), then each batch of 1 … 64 trajectories (64² grid; on a
@@ -16,16 +16,14 @@ into outputs/studies/cost_scaling/.
 from __future__ import annotations
 
 import dataclasses
-import sys
 import threading
 import time
 from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-import stability  # noqa: E402
-import studylib as S  # noqa: E402
+from experiments import stability
+from experiments import studylib as S
 
 
 class PeakRSS:

@@ -1,8 +1,8 @@
 """Why an elastic reduced model works or fails: how low-dimensional the data is, and what the embedding gets wrong.
 
-    python experiments/elastic_diagnostics.py --content                  # both releases, 16 runs of the FEM model
-    python experiments/elastic_diagnostics.py --oracle                   # what a 1-D reduction can reach at best
-    python experiments/elastic_diagnostics.py --ckpt outputs/elastic/runs/<run>/checkpoints/last.ckpt
+    python -m experiments.elastic_diagnostics --content                  # both releases, 16 runs of the FEM model
+    python -m experiments.elastic_diagnostics --oracle                   # what a 1-D reduction can reach at best
+    python -m experiments.elastic_diagnostics --ckpt outputs/elastic/runs/<run>/checkpoints/last.ckpt
 
 --content simulates 16 runs (5 s) of each release (``scene.release``: the Euler–Bernoulli "shape" and the
 "modal" one) and prints the share of the displacement and of the velocity (mass-weighted, from the reference
@@ -21,7 +21,7 @@ It then separates the two sources of a wrong reduced frequency:
   first mode, with that error's share of mass and of strain energy and where along X₁ it lies.
 Every number is measured in the run. --oracle and --content also write their table (summary.md, with the machine
 and the command) and their numbers (oracle.json, content.json) into <--out>/oracle/ and <--out>/content/ (default
-outputs/elastic_diagnostics/), which `experiments/results_tables.py --collect` copies into results/.
+outputs/elastic_diagnostics/), which `python -m experiments.results_tables --collect` copies into results/.
 """
 from __future__ import annotations
 
@@ -33,7 +33,6 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
 
 
 def _mass_weighted(scene, x: np.ndarray) -> np.ndarray:
@@ -298,7 +297,7 @@ def write_report(folder: Path, name: str, numbers: dict, title: str, table: list
     from lnf.tempfiles import write_text_atomic
 
     folder.mkdir(parents=True, exist_ok=True)
-    command = " ".join(["python experiments/elastic_diagnostics.py", *argv])
+    command = " ".join(["python -m experiments.elastic_diagnostics", *argv])
     write_text_atomic(folder / f"{name}.json", json.dumps(numbers, indent=1) + "\n")
     write_text_atomic(folder / "summary.md", f"# {title}\n\nMachine: {platform.platform()}, {os.cpu_count()} CPUs. "
                                              f"Command: `{command}`.\n\n" + "\n".join(table) + "\n")
@@ -329,7 +328,8 @@ def content_table(results: dict[str, dict[str, object]]) -> list[str]:
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(prog="python -m experiments.elastic_diagnostics", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--content", action="store_true", help="low-dimensionality of the two releases")
     parser.add_argument("--runs", type=int, default=16)
     parser.add_argument("--mesh", type=int, nargs=2, default=None, help="--content: FEM mesh (nx ny), default the scene's")

@@ -1,8 +1,8 @@
 """The finite-element reference (lnf.fem, scikit-fem) checked and measured: is it the FEM it claims, how far is it
 from the continuum, and what does its time stepping cost?
 
-    python experiments/fem_reference.py            # all three parts (about 2 minutes on 2 cores)
-    python experiments/fem_reference.py --part mesh
+    python -m experiments.fem_reference            # all three parts (about 2 minutes on 2 cores)
+    python -m experiments.fem_reference --part mesh
 
 - ``assembly``: the batched internal force and tangent stiffness that the references use (sparse products with
   scikit-fem's discrete gradient) against scikit-fem's own assembly of ∫ P : ∇v dX and ∫ ∇v : A : ∇u dX, and the
@@ -19,19 +19,15 @@ from __future__ import annotations
 
 import argparse
 import platform
-import sys
 import time
-from pathlib import Path
 
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from lnf.fem.time_stepping import implicit_midpoint, verlet  # noqa: E402
-from lnf.scenes import ElasticCantilever, SoftBody  # noqa: E402
+from lnf.fem.time_stepping import implicit_midpoint, verlet
+from lnf.scenes import ElasticCantilever, SoftBody
 
 
 def assembly() -> None:
@@ -118,7 +114,8 @@ PARTS = {"assembly": assembly, "mesh": mesh, "stepping": stepping}
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(prog="python -m experiments.fem_reference", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--part", choices=sorted(PARTS), nargs="+", default=list(PARTS))
     args = parser.parse_args(argv)
     print(f"{platform.machine()}, {torch.get_num_threads()} torch threads, torch {torch.__version__}")

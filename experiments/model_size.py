@@ -1,8 +1,8 @@
 """Model no more than a scene needs: the smallest latent dimension and network that meet an accuracy target.
 
-    python experiments/model_size.py                     # reduced: d ∈ {1, 2}, width ∈ {16, 32, 64}, target 0.10
-    python experiments/model_size.py --full --target 0.02 # d ∈ {1, 2, 3}, width ∈ {32 … 256}, default training
-    python experiments/model_size.py --scene <scene> --target 0.05
+    python -m experiments.model_size                     # reduced: d ∈ {1, 2}, width ∈ {16, 32, 64}, target 0.10
+    python -m experiments.model_size --full --target 0.02 # d ∈ {1, 2, 3}, width ∈ {32 … 256}, default training
+    python -m experiments.model_size --scene <scene> --target 0.05
 
 A Hydra multirun of `python -m lnf.train` over `model.latent_dim` × `model.width`. The choice is the
 smallest d for which some width meets the target on the test `field_rel_l2` (all, median), then the
@@ -11,15 +11,13 @@ model_size.csv, model_size.png and summary.md into outputs/studies/model_size/.
 """
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 from typing import Optional
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-import operator_inference as OI  # noqa: E402
-import studylib as S  # noqa: E402
+from experiments import operator_inference as OI
+from experiments import studylib as S
 
 ERR = "field_rel_l2/all/median"
 

@@ -1,8 +1,8 @@
 """Operator Inference (OpInf) as a non-intrusive baseline: POD + a polynomial discrete-time reduced model, per rank.
 
-    python experiments/operator_inference.py                             # the default scene, r ∈ {1, 2, 4, 8}
-    python experiments/operator_inference.py --scene elastic --ranks 2 4 8 16
-    python experiments/operator_inference.py --smoke --out /tmp/opinf   # tiny data (the test suite's)
+    python -m experiments.operator_inference                             # the default scene, r ∈ {1, 2, 4, 8}
+    python -m experiments.operator_inference --scene elastic --ranks 2 4 8 16
+    python -m experiments.operator_inference --smoke --out /tmp/opinf   # tiny data (the test suite's)
 
 Generates (or reuses) the scene's dataset exactly as `python -m lnf.train +experiment=<scene>` does (the same
 composed `data` settings, the same file under LNF_DATA_DIR; --smoke: the studies' tiny data settings), fits
@@ -23,15 +23,12 @@ from __future__ import annotations
 import datetime
 import json
 import os
-import sys
 import time
-from pathlib import Path
 from typing import Any, Optional
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-import studylib as S  # noqa: E402
+from experiments import studylib as S
 
 ERR = "field_rel_l2"
 
@@ -127,7 +124,7 @@ def observed_row(study: S.Study, scene: Any, splits: dict[str, Any], rank: int, 
     """OpInf given only lnf's sparse observations at `rank` (experiments/opinf_observed.py). The gappy completion is
     computed at the first call and kept in `cache` for the next ranks (its rank cross-validated; fixed at 2 under
     --smoke). None, with a note, for a rank above the completion rank (its extra modes would be round-off)."""
-    from opinf_observed import complete_observations, evaluate_observed
+    from experiments.opinf_observed import complete_observations, evaluate_observed
 
     if "completion" not in cache:
         cache["completion"] = complete_observations(scene, splits, 2 if study.mode == "smoke" else None)

@@ -23,16 +23,13 @@ Relies on these attributes of a fitted OperatorInference: ``basis.entries`` (D, 
 """
 from __future__ import annotations
 
-import sys
 import time
-from pathlib import Path
 from dataclasses import dataclass
 from typing import Any, Optional
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from operator_inference import ERR, mass_weights, split_controls  # noqa: E402
+from experiments.operator_inference import ERR, mass_weights, split_controls
 
 COMPLETION_RANKS = (1, 2, 3, 4, 6, 8)  # candidates of the completion's rank
 

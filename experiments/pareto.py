@@ -1,10 +1,10 @@
 """Accuracy against cost (Pareto), for our model and the three baselines, measured in one run.
 
-    python experiments/pareto.py                 # reduced settings (< 30 min on 2 CPU cores)
-    python experiments/pareto.py --full          # model sizes up to the default width 256, default training
-    python experiments/pareto.py --quadrature-ckpt outputs/pendulum/runs/<run>/checkpoints/last.ckpt
-    python experiments/pareto.py --scene elastic # any conf/experiment/<scene>.yaml: outputs/studies/pareto-<scene>
-    PYTHONPATH=examples python experiments/pareto.py --config-dir examples/conf --scene vibrating_string  # your own
+    python -m experiments.pareto                 # reduced settings (< 30 min on 2 CPU cores)
+    python -m experiments.pareto --full          # model sizes up to the default width 256, default training
+    python -m experiments.pareto --quadrature-ckpt outputs/pendulum/runs/<run>/checkpoints/last.ckpt
+    python -m experiments.pareto --scene elastic # any conf/experiment/<scene>.yaml: outputs/studies/pareto-<scene>
+    PYTHONPATH=examples python -m experiments.pareto --config-dir examples/conf --scene vibrating_string  # your own
 
 Hydra multiruns of `python -m lnf.train` (each method across its own size knob: our width, depth, K
 and latent dimension; the black box's field width; POD's number of modes k = 1…8; the full-order grid)
@@ -25,14 +25,12 @@ in the same run, is drawn as the full-order line.
 from __future__ import annotations
 
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-import operator_inference as OI  # noqa: E402
-import studylib as S  # noqa: E402
+from experiments import operator_inference as OI
+from experiments import studylib as S
 
 ERR = "field_rel_l2/extrapolation/median"
 COST = "cost_seconds"  # rollout + decoding of one trajectory's fields at the data's sample times (see add_cost)
@@ -191,7 +189,7 @@ def simulator_seconds(ckpt: Path, threads: int, trust: list[str] | None = None) 
     import torch
 
     from lnf.model import load
-    from scenes import datamodule_of, timed
+    from experiments.scenes import datamodule_of, timed
 
     torch.set_num_threads(threads)
     model = load(ckpt, trust=trust)

@@ -7,7 +7,7 @@
    10 000 steps (dt = 0.05 s, 200× the training horizon) from test initial conditions: energy_drift;
 4. prints every number against its threshold and writes them to ``<run dir>/acceptance.json``.
 
-    python experiments/pendulum_acceptance.py [--skip-train RUN_DIR] [--steps 10000] [--trajectories 4]
+    python -m experiments.pendulum_acceptance [--skip-train RUN_DIR] [--steps 10000] [--trajectories 4]
 """
 from __future__ import annotations
 
@@ -40,7 +40,8 @@ def run_training(extra: list[str]) -> tuple[Path, float]:
 
 
 def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(prog="python -m experiments.pendulum_acceptance", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--skip-train", type=Path, default=None, help="evaluate an existing run dir instead of training")
     p.add_argument("--steps", type=int, default=10000)
     p.add_argument("--trajectories", type=int, default=4)
@@ -91,7 +92,7 @@ def main() -> None:
     from lnf.tempfiles import write_text_atomic
 
     write_text_atomic(run_dir / "acceptance.json", json.dumps(out, indent=2))
-    print(f"wrote {run_dir / 'acceptance.json'} (python experiments/results_tables.py --collect "
+    print(f"wrote {run_dir / 'acceptance.json'} (python -m experiments.results_tables --collect "
           f"pendulum_acceptance={run_dir} pendulum_default={run_dir} puts it in the docs)")
     sys.exit(0 if ok_all else 1)
 

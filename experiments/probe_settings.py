@@ -10,8 +10,8 @@ samples), then reports on held-out trajectories:
     reduced pendulum's frequency error ≈ ε/2).
 This is what docs/choices.md quotes (w0, hypernetwork, quadrature order, tangent loss).
 
-    python experiments/probe_settings.py --steps 600 --w0 10
-    python experiments/probe_settings.py --steps 600 --lr 1e-3 --observe uniform
+    python -m experiments.probe_settings --steps 600 --w0 10
+    python -m experiments.probe_settings --steps 600 --lr 1e-3 --observe uniform
 """
 from __future__ import annotations
 
@@ -30,7 +30,8 @@ from lnf.scenes import LiftedPendulum
 
 
 def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(prog="python -m experiments.probe_settings", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--steps", type=int, default=600, help="training steps (the budget; cosine decay over them)")
     p.add_argument("--observe", choices=["grid", "vertex", "uniform"], default="grid",
                    help="grid: 25 %% of the 32×32 midpoint grid (cell centres) per trajectory (the protocol); vertex: "

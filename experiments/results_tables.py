@@ -5,14 +5,14 @@ A table lives in a Markdown file between two markers, and everything between the
     <!-- results:pareto-elastic -->
     | method, setting | ... |
     ...
-    *Made on ..., by `python experiments/pareto.py --scene elastic` ...*
+    *Made on ..., by `python -m experiments.pareto --scene elastic` ...*
     <!-- /results:pareto-elastic -->
 
 Its sources are committed under ``results/<name>/``: ``provenance.json`` (machine, date, command, commit) and the
 data, which is one of
 
 - a copy of the raw output of a study or run (``pareto.csv``, ``<study>.csv`` with the study's ``summary.md``, a
-  run's ``metrics.json``), from which the table is computed: ``python experiments/results_tables.py --collect``
+  run's ``metrics.json``), from which the table is computed: ``python -m experiments.results_tables --collect``
   copies it from ``outputs/`` after a study has run (raw ``outputs/`` is not committed);
 - ``table.csv``, the table's cells as a report gave them, for a table whose raw outputs are not on this machine.
   Its ``provenance.json`` says ``"transcribed_from_docs": true``, and the table says so under it;
@@ -22,15 +22,15 @@ data, which is one of
 
 Commands (from the repository root)::
 
-    python experiments/results_tables.py              # rewrite every table from results/
-    python experiments/results_tables.py --check      # exit 1 if a table differs from what its sources give
-    python experiments/results_tables.py --collect    # copy each study's raw outputs found under outputs/ first
-    python experiments/results_tables.py --collect pendulum_default=outputs/pendulum/runs/<run>   # a run's folder
-    python experiments/results_tables.py --list       # the tables, their sources and where they appear
+    python -m experiments.results_tables              # rewrite every table from results/
+    python -m experiments.results_tables --check      # exit 1 if a table differs from what its sources give
+    python -m experiments.results_tables --collect    # copy each study's raw outputs found under outputs/ first
+    python -m experiments.results_tables --collect pendulum_default=outputs/pendulum/runs/<run>   # a run's folder
+    python -m experiments.results_tables --list       # the tables, their sources and where they appear
 
 Files are rewritten atomically (a temporary file in the same folder, then a rename), and only when they change.
 The script needs only the standard library to render and check; ``--collect`` of a Pareto study imports
-``experiments/pareto.py``.
+``experiments.pareto``.
 """
 from __future__ import annotations
 
@@ -103,7 +103,7 @@ SCENES = ["pendulum", "double_pendulum", "bump", "elastic", "elastic_actuated", 
 def _study(name: str, scene: str, kind: str = "study", table: int = 0) -> Spec:
     suffix = "" if scene == "pendulum" else f"-{scene}"
     flag = "" if scene == "pendulum" else f" --scene {scene}"
-    return Spec(kind=kind, command=f"python experiments/{name}.py{flag}", raw=f"outputs/studies/{name}{suffix}",
+    return Spec(kind=kind, command=f"python -m experiments.{name}{flag}", raw=f"outputs/studies/{name}{suffix}",
                 table=table, csv=f"{name}.csv")
 
 
@@ -157,7 +157,7 @@ FEM_SCENE_MEASUREMENTS = (
     ("all measurements [s]", "seconds"),
 )
 
-# experiments/probe_settings.py --out probe.json: the embedding after a fixed number of steps
+# python -m experiments.probe_settings --out probe.json: the embedding after a fixed number of steps
 PROBE_METRICS = (
     ("projection error, 32×32 (training grid)", "projection_rel_l2_32"),
     ("projection error, 64×64 (test grid)", "projection_rel_l2_64"),
@@ -184,15 +184,15 @@ SPECS: dict[str, Spec] = {
     **{f"seeds-{s}": _study("seeds", s) for s in SCENES},
     "cost_scaling-pendulum": _study("cost_scaling", "pendulum"),
     **{f"roofline-{s}": _study("roofline", s) for s in SCENES},
-    "roofline-defaults": Spec("stack", "python experiments/roofline.py --scene <scene>",
+    "roofline-defaults": Spec("stack", "python -m experiments.roofline --scene <scene>",
                               parts=tuple((s.replace("_", " "), f"roofline-{s}") for s in SCENES),
                               where=("default", "True"), columns=(
         ("SIREN width", "width"), ("trajectories", "batch"), ("quadrature points", "points"),
         ("FLOPs per step", "flops"), ("ms per RK4 step", "seconds", 1e3), ("× the bound", "ratio"),
         ("matmul peak, same run [GFLOP/s]", "matmul_peak_gflops"))),
-    "summary": Spec("cells", "python experiments/results_tables.py"),
+    "summary": Spec("cells", "python -m experiments.results_tables"),
     "pendulum_default": Spec("metrics", "python -m lnf.train +experiment=pendulum", metrics=PENDULUM_METRICS),
-    "pendulum_acceptance": Spec("metrics", "python experiments/pendulum_acceptance.py", file="acceptance.json", metrics=(
+    "pendulum_acceptance": Spec("metrics", "python -m experiments.pendulum_acceptance", file="acceptance.json", metrics=(
         ("wall-clock of the train command [s] (data generation, training, test evaluation; target ≤ 1 200)",
          "train_wall_seconds"),
         ("`field_rel_l2/all/median` (target ≤ 0.02)", "field_rel_l2/all/median"),
@@ -208,16 +208,16 @@ SPECS: dict[str, Spec] = {
         ("every target met", "passed"),
     )),
     "soft_body_default": Spec("metrics", "python -m lnf.train +experiment=soft_body", metrics=SCENE_METRICS),
-    "soft_body_scenes": Spec("metrics", "python experiments/scenes.py --scene soft_body --measure speedup shape damped",
+    "soft_body_scenes": Spec("metrics", "python -m experiments.scenes --scene soft_body --measure speedup shape damped",
                              metrics=FEM_SCENE_MEASUREMENTS, file="results.json"),
     **{f"pendulum_grid-{g}": Spec("metrics", f"python -m lnf.train +experiment=pendulum data.coarse_grid={g.split('-')[0]}",
                                   metrics=PENDULUM_METRICS) for g in ("centres", "vertices", "vertices-lr1e-3")},
-    "pendulum_grid": Spec("cells", "python experiments/results_tables.py"),
-    **{f"probe-w0-{w}": Spec("metrics", f"python experiments/probe_settings.py --steps 650 --hyper-depth 0 "
+    "pendulum_grid": Spec("cells", "python -m experiments.results_tables"),
+    **{f"probe-w0-{w}": Spec("metrics", f"python -m experiments.probe_settings --steps 650 --hyper-depth 0 "
                                         f"--velocity-weight 0 --w0 {w} --out <folder>/probe.json",
                              metrics=PROBE_METRICS, file="probe.json") for w in (10, 30)},
-    "probe-w0": Spec("cells", "python experiments/results_tables.py"),
-    "bench_defaults-pendulum-vertices": Spec("study", "python experiments/bench_defaults.py --override data.coarse_grid=vertices "
+    "probe-w0": Spec("cells", "python -m experiments.results_tables"),
+    "bench_defaults-pendulum-vertices": Spec("study", "python -m experiments.bench_defaults --override data.coarse_grid=vertices "
                                          "--out outputs/studies/bench_defaults-vertices",
                                          raw="outputs/studies/bench_defaults-vertices", csv="bench_defaults.json"),
     "pendulum_lr1e-3": Spec("metrics", "python -m lnf.train +experiment=pendulum optimizer.lr=1e-3",
@@ -234,17 +234,17 @@ SPECS: dict[str, Spec] = {
         ("rollouts, decoding and checks [s] (`evaluation_seconds`: without start-up, ground truth and figures)",
          "evaluation_seconds"),
     )),
-    "elastic-oracle": Spec("study", "python experiments/elastic_diagnostics.py --oracle --degree 1 2 3",
+    "elastic-oracle": Spec("study", "python -m experiments.elastic_diagnostics --oracle --degree 1 2 3",
                            raw="outputs/elastic_diagnostics/oracle", csv="oracle.json"),
-    "elastic-release": Spec("study", "python experiments/elastic_diagnostics.py --content",
+    "elastic-release": Spec("study", "python -m experiments.elastic_diagnostics --content",
                             raw="outputs/elastic_diagnostics/content", csv="content.json"),
-    "streaming": Spec("study", "python experiments/streaming.py", raw="outputs/streaming", csv="results.json"),
-    "bench_training": Spec("study", "python experiments/bench_training.py --baseline <commit>",
+    "streaming": Spec("study", "python -m experiments.streaming", raw="outputs/streaming", csv="results.json"),
+    "bench_training": Spec("study", "python -m experiments.bench_training --baseline <commit>",
                            raw="outputs/studies/bench_training", csv="bench_training.json"),
-    "bench_training-tabulated": Spec("study", "python experiments/bench_training.py --baseline <commit>",
+    "bench_training-tabulated": Spec("study", "python -m experiments.bench_training --baseline <commit>",
                                      raw="outputs/studies/bench_training", csv="bench_training.json", table=1),
     # the worked example of docs/own_system.md, a scene kept outside the package
-    **{f"{name}-vibrating_string": Spec(kind, f"PYTHONPATH=examples python experiments/{name}.py --config-dir examples/conf "
+    **{f"{name}-vibrating_string": Spec(kind, f"PYTHONPATH=examples python -m experiments.{name} --config-dir examples/conf "
                                               f"--scene vibrating_string", raw=f"outputs/studies/{name}-vibrating_string",
                                         csv=f"{name}.csv")
        for name, kind in [("pareto", "pareto"), ("stability", "study")]},
@@ -305,8 +305,19 @@ def parse_markdown_tables(text: str) -> list[tuple[list[str], list[list[str]]]]:
     return tables
 
 
+SCRIPT_COMMAND = re.compile(r"\bpython experiments/(\w+)\.py\b")
+
+
+def rerun_command(command: str) -> str:
+    """A recorded command as it is run today: `python experiments/<study>.py ...`, as runs before the studies became
+    the package `experiments` recorded it, becomes `python -m experiments.<study> ...`; any other command (e.g.
+    `python -m experiments.pareto ...` or `python -m lnf.train ...`) is returned as it is."""
+    return SCRIPT_COMMAND.sub(r"python -m experiments.\1", command)
+
+
 def provenance_line(name: str, prov: dict[str, Any], spec: Spec) -> str:
-    """The line under a table: machine, date, command(s), commit, note, where its sources are."""
+    """The line under a table: machine, date, command(s) as the run recorded them, commit, note, where its sources
+    are; the command of a rerun it suggests is spelled as it is run today (:func:`rerun_command`)."""
     commands = prov.get("command") or spec.command
     commands = [commands] if isinstance(commands, str) else list(commands)
     shown = "; ".join(f"`{c}`" for c in commands)
@@ -325,13 +336,13 @@ def provenance_line(name: str, prov: dict[str, Any], spec: Spec) -> str:
     else:
         text += f" Source: `results/{name}/`"
     if prov.get("transcribed_from_docs"):
-        rerun = f"rerun `{commands[0]}`" if len(commands) == 1 else "rerun the commands above"
+        rerun = f"rerun `{rerun_command(commands[0])}`" if len(commands) == 1 else "rerun the commands above"
         if spec.kind == "transcribed":
             text += f" (transcribed from the run's report; {rerun} and update `results/{name}/table.csv` from its output)"
         else:
             collect = "--collect" if spec.raw else f"--collect {name}=<its output folder>"
             text += (f" (transcribed from the run's report; {rerun} to regenerate from raw outputs, then "
-                     f"`python experiments/results_tables.py {collect}`)")
+                     f"`python -m experiments.results_tables {collect}`)")
     return f"*{text}.*"
 
 
@@ -372,11 +383,7 @@ def read_study_csv(path: Path) -> list[dict[str, Any]]:
 
 
 def _pareto_rows(folder: Path, prov: dict[str, Any]) -> tuple[list[str], list[list[str]]]:
-    sys.path.insert(0, str(ROOT / "experiments"))
-    try:
-        import pareto  # the study's own choice of each method's most accurate point
-    finally:
-        sys.path.remove(str(ROOT / "experiments"))
+    from experiments import pareto  # the study's own choice of each method's most accurate point
     rows = read_study_csv(folder / "pareto.csv")
     best = pareto.best_of_each_method(rows, int(prov.get("body_dim", 2)))
     header = ["method", "setting", "extrapolation error", "in-horizon error", "energy drift",
@@ -656,7 +663,7 @@ def run(check: bool) -> int:
     if check:
         for where in stale:
             print(f"{where}: its results tables differ from what results/ gives; run "
-                  f"python experiments/results_tables.py", file=sys.stderr)
+                  f"python -m experiments.results_tables", file=sys.stderr)
         print(f"{len(used)} tables checked in {len(markdown_files())} files: "
               f"{'all up to date' if not stale else f'{len(stale)} files out of date'}")
         return 1 if stale else 0
@@ -757,7 +764,7 @@ def collect(name: str, raw: Optional[Path]) -> Path:
 
 
 def main(argv: Optional[list[str]] = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+    parser = argparse.ArgumentParser(prog="python -m experiments.results_tables", description=__doc__.split("\n\n")[0],
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--check", action="store_true", help="change nothing; exit 1 if a table is out of date")
     parser.add_argument("--collect", nargs="*", metavar="NAME[=FOLDER]",

@@ -1,9 +1,9 @@
 """Roofline of the reduced dynamics: measured time of one RK4 step against its FLOP bound, same run.
 
-    python experiments/roofline.py                 # widths 64/128/256 × 1…64 trajectories, GL 8² (default)
-    python experiments/roofline.py --smoke
-    python experiments/roofline.py --scene bump    # the scene's latent dimension, field and quadrature
-    python experiments/roofline.py --scene elastic # + the ∇_X φ jets of its strain energy
+    python -m experiments.roofline                 # widths 64/128/256 × 1…64 trajectories, GL 8² (default)
+    python -m experiments.roofline --smoke
+    python -m experiments.roofline --scene bump    # the scene's latent dimension, field and quadrature
+    python -m experiments.roofline --scene elastic # + the ∇_X φ jets of its strain energy
 
 The bound of a step is the matmul FLOPs it needs — value, J and H of the modulated SIREN at the
 quadrature points (and, where the potential depends on the field gradient, ∇_X φ and ∂(∇_X φ)/∂q̃), four
@@ -23,11 +23,9 @@ from __future__ import annotations
 
 import sys
 import time
-from pathlib import Path
 from typing import Any
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-import studylib as S  # noqa: E402
+from experiments import studylib as S
 
 DEFAULT_BATCH = 16  # the test set's 16 trajectories, rolled out at once
 

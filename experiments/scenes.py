@@ -1,11 +1,11 @@
 """Acceptance measurements of a trained scene, chosen by what the scene declares.
 
     python -m lnf.train +experiment=<scene>            # train first (a run under outputs/<scene>/runs/)
-    python experiments/scenes.py --scene <scene>      # every measurement the scene's declarations allow, on its newest run
-    python experiments/scenes.py --scene <scene> --measure modes --max-modes 12     # only some of them
-    python experiments/scenes.py --scene elastic --dynamics tabulated   # our rollouts with the tabulated M̃, Ṽ
-    python experiments/scenes.py --scene elastic_actuated --unseen-load 0.5 1.2     # the load of docs/benchmarks/scenes.md
-    PYTHONPATH=examples python experiments/scenes.py --config-dir examples/conf --scene vibrating_string \\
+    python -m experiments.scenes --scene <scene>      # every measurement the scene's declarations allow, on its newest run
+    python -m experiments.scenes --scene <scene> --measure modes --max-modes 12     # only some of them
+    python -m experiments.scenes --scene elastic --dynamics tabulated   # our rollouts with the tabulated M̃, Ṽ
+    python -m experiments.scenes --scene elastic_actuated --unseen-load 0.5 1.2     # the load of docs/benchmarks/scenes.md
+    PYTHONPATH=examples python -m experiments.scenes --config-dir examples/conf --scene vibrating_string \\
         --ckpt <run>/checkpoints/last.ckpt                                           # a scene of your own
 
 The measurements, and what each asks of the scene (``lnf.scenes.Scene``):
@@ -45,7 +45,6 @@ import copy
 import json
 import os
 import platform
-import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -54,22 +53,20 @@ from typing import Any, Callable, Optional
 import numpy as np
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(1, str(ROOT / "experiments"))
+from experiments import studylib
+from lnf.baselines.latent_mlp import LatentMLPDynamics
+from lnf.baselines.pod import PODGalerkin
+from lnf import metrics as M
+from lnf.dataset import SOURCE_ARRAYS, DatasetConfig
+from lnf.evaluate import ensure_code_range, evaluation_data
+from lnf.evaluation import evaluate_rollouts, long_horizon_energy, trajectory_controls
+from lnf.model import load
+from lnf.plotting import _subscript, save_figure
+from lnf.train import fit_latent_dynamics
+from lnf.training.callbacks import write_json_atomic
+from lnf.training.datamodule import SnapshotDataModule
 
-import studylib  # noqa: E402
-from lnf.baselines.latent_mlp import LatentMLPDynamics  # noqa: E402
-from lnf.baselines.pod import PODGalerkin  # noqa: E402
-from lnf import metrics as M  # noqa: E402
-from lnf.dataset import SOURCE_ARRAYS, DatasetConfig  # noqa: E402
-from lnf.evaluate import ensure_code_range, evaluation_data  # noqa: E402
-from lnf.evaluation import evaluate_rollouts, long_horizon_energy, trajectory_controls  # noqa: E402
-from lnf.model import load  # noqa: E402
-from lnf.plotting import _subscript, save_figure  # noqa: E402
-from lnf.train import fit_latent_dynamics  # noqa: E402
-from lnf.training.callbacks import write_json_atomic  # noqa: E402
-from lnf.training.datamodule import SnapshotDataModule  # noqa: E402
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def datamodule_of(model: Any) -> SnapshotDataModule:
@@ -637,7 +634,8 @@ def merge(result: dict[str, Any], part: dict[str, Any], name: str) -> None:
 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(prog="python -m experiments.scenes", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--config-dir", type=Path, default=None, metavar="DIR",
                         help="a Hydra config folder of your own, as `python -m lnf.train --config-dir DIR` takes it "
                              "(the scene's module must be importable: PYTHONPATH)")

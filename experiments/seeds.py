@@ -1,8 +1,8 @@
 """Robustness across seeds: a scene's run over several seeds, the spread of its test errors and divergences.
 
-    python experiments/seeds.py --scene bump               # reduced settings, seeds 0…4
-    python experiments/seeds.py --scene elastic --seeds 8  # more seeds
-    python experiments/seeds.py --full --scene pendulum    # the default model size and training budget
+    python -m experiments.seeds --scene bump               # reduced settings, seeds 0…4
+    python -m experiments.seeds --scene elastic --seeds 8  # more seeds
+    python -m experiments.seeds --full --scene pendulum    # the default model size and training budget
 
 A Hydra multirun of `python -m lnf.train +experiment=<scene> seed=0,…,n−1` (the seed draws the network's
 initialisation and the batch order; the dataset is the scene's default one, the same for every seed). For each
@@ -12,13 +12,9 @@ rollout diverged. Writes seeds.csv and summary.md into outputs/studies/seeds[-<s
 """
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-import studylib as S  # noqa: E402
+from experiments import studylib as S
 
 WINDOWS = ("all", "in_horizon", "extrapolation")
 WORST_OVER_MEDIAN = 2.0  # the robustness bar: worst seed ≤ 2× the median seed

@@ -1,7 +1,7 @@
 """Sparse and noisy observations in training, for our model and the baselines, measured in one run.
 
-    python experiments/sparse_noisy.py          # reduced: 25 %, 5 %, 1 % of the grid; noise 0, 5 %, 10 % (< 30 min)
-    python experiments/sparse_noisy.py --full   # 25 %, 10 %, 5 %, 1 %; noise 0, 1 %, 5 %, 10 %; default model size
+    python -m experiments.sparse_noisy          # reduced: 25 %, 5 %, 1 % of the grid; noise 0, 5 %, 10 % (< 30 min)
+    python -m experiments.sparse_noisy --full   # 25 %, 10 %, 5 %, 1 %; noise 0, 1 %, 5 %, 10 %; default model size
 
 Hydra multiruns of `python -m lnf.train` over `data.observed_fraction` (the share of the 32×32 coarse grid
 each training trajectory observes) and `data.noise` (Gaussian noise on the observed training values and
@@ -11,13 +11,11 @@ Writes sparse_noisy.csv, sparse_noisy.png and summary.md into outputs/studies/sp
 """
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-import studylib as S  # noqa: E402
+from experiments import studylib as S
 
 ERR = "field_rel_l2/all/median"
 

@@ -1,8 +1,8 @@
 """Stability where methods fail: long horizons, high energy, large time steps, resolution transfer.
 
-    python experiments/stability.py           # reduced settings (< 30 min on 2 CPU cores)
-    python experiments/stability.py --full    # default model size and training budget
-    PYTHONPATH=examples python experiments/stability.py --config-dir examples/conf --scene vibrating_string  # your own
+    python -m experiments.stability           # reduced settings (< 30 min on 2 CPU cores)
+    python -m experiments.stability --full    # default model size and training budget
+    PYTHONPATH=examples python -m experiments.stability --config-dir examples/conf --scene vibrating_string  # your own
 
 Trains each method once with `python -m lnf.train` (our model, the black-box latent MLP, POD-Galerkin
 with k = 1, the full-order model on the 64×64 grid), then re-evaluates each checkpoint with Hydra
@@ -26,14 +26,12 @@ summary.md into outputs/studies/stability/.
 """
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Optional, Sequence
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-import studylib as S  # noqa: E402
+from experiments import studylib as S
 
 if TYPE_CHECKING:
     from lnf.scenes.base import StabilityCases

@@ -10,8 +10,8 @@ the cgroup's peak usage, the loader's throughput alone and the training throughp
 - ``in_memory`` under the limit: expected to be killed;
 - ``in_memory`` without a limit: the baseline the lazy throughput is compared with, as a ratio.
 
-    python experiments/streaming.py                    # 6 GiB of data, 1.5 GiB limit, 40 training steps
-    python experiments/streaming.py --gib 0.3 --limit-gib 0.2 --steps 5     # smoke
+    python -m experiments.streaming                    # 6 GiB of data, 1.5 GiB limit, 40 training steps
+    python -m experiments.streaming --gib 0.3 --limit-gib 0.2 --steps 5     # smoke
 
 Needs a writable memory cgroup (v2 ``/sys/fs/cgroup`` or v1 ``/sys/fs/cgroup/memory``, usually root);
 without one it says so and exits. Writes outputs/streaming/results.json and summary.md (the table of the docs).
@@ -204,8 +204,8 @@ def make_dataset(gib: float, data_dir: Path) -> tuple[Path, int]:
 
 def run_child(args: argparse.Namespace, path: Path, n_train: int, mode: str, workers: int,
               limit: Optional[int]) -> dict[str, Any]:
-    cmd = [sys.executable, __file__, "--child", "--mode", mode, "--workers", str(workers), "--path", str(path),
-           "--n-train", str(n_train), "--steps", str(args.steps), "--warmup", str(args.warmup),
+    cmd = [sys.executable, "-m", "experiments.streaming", "--child", "--mode", mode, "--workers", str(workers),
+           "--path", str(path), "--n-train", str(n_train), "--steps", str(args.steps), "--warmup", str(args.warmup),
            "--batch-size", str(args.batch_size), "--loader-batches", str(args.loader_batches)]
     group = MemoryCgroup(limit) if limit else None
     label = f"{mode}" + (f", {workers} workers" if workers else "") + (f", limit {limit / 2 ** 30:.2f} GiB" if limit else ", no limit")
@@ -227,7 +227,8 @@ def run_child(args: argparse.Namespace, path: Path, n_train: int, mode: str, wor
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(prog="python -m experiments.streaming", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--gib", type=float, default=6.0, help="dataset size [GiB]")
     parser.add_argument("--limit-gib", type=float, default=1.5, help="memory limit of a training process [GiB]")
     parser.add_argument("--steps", type=int, default=40, help="timed training steps (after --warmup)")
@@ -275,7 +276,7 @@ def main() -> None:
 
     args.out.parent.mkdir(parents=True, exist_ok=True)
     write_text_atomic(args.out, json.dumps(result, indent=2))
-    command = " ".join(["python experiments/streaming.py", *sys.argv[1:]])
+    command = " ".join(["python -m experiments.streaming", *sys.argv[1:]])
     write_text_atomic(args.out.with_name("summary.md"), summary_text(result, args.limit_gib, command))
     print(f"\ndataset {path.stat().st_size / 2 ** 30:.2f} GiB, limit {args.limit_gib:g} GiB (cgroup, page cache included)")
     print(f"{'run':34s} {'peak RSS':>9s} {'cgroup':>8s} {'loader/s':>9s} {'train/s':>8s} {'vs in-mem':>9s}")

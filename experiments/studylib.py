@@ -32,8 +32,6 @@ from typing import Any, Iterable, Optional, Sequence
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:  # `python experiments/<study>.py` from any folder imports this checkout's lnf
-    sys.path.insert(0, str(ROOT))
 CONF = ROOT / "conf"
 
 # The methods compared in every chart: label → overrides that select them (docs/method.md §7.5)
@@ -166,14 +164,16 @@ class Study:
 
     def command(self) -> str:
         """The command line that reruns this study (its mode, config dir and scene) from the repository root, as
-        summaries and captions print it; with a config dir, the PYTHONPATH that imports the scene's module."""
+        summaries and captions print it; with a config dir, the PYTHONPATH that imports the scene's module (less the
+        repository root itself, which `python -m` run there puts on the path)."""
         mode = "" if self.mode == "reduced" else f" --{self.mode}"
         if self.config_dir is None:
             scene = "" if self.is_default_scene() else f" --scene {self.scene}"
-            return f"python experiments/{self.name}.py{mode}{scene}"
-        path = [_shown(Path(p)) for p in absolute_pythonpath(os.environ.get("PYTHONPATH", "")).split(os.pathsep) if p]
+            return f"python -m experiments.{self.name}{mode}{scene}"
+        path = [_shown(Path(p)) for p in absolute_pythonpath(os.environ.get("PYTHONPATH", "")).split(os.pathsep)
+                if p and Path(p) != ROOT]
         env = f"PYTHONPATH={os.pathsep.join(path)} " if path else ""
-        return (f"{env}python experiments/{self.name}.py{mode} --config-dir {_shown(self.config_dir)} "
+        return (f"{env}python -m experiments.{self.name}{mode} --config-dir {_shown(self.config_dir)} "
                 f"--scene {self.scene}")
 
     def supports(self, name: str) -> bool:
@@ -235,9 +235,10 @@ class Study:
 
 
 class JobWorker:
-    """One Python process, started in the repository root with :func:`job_environment`, that runs the study's
-    multiruns one after another as `python -m <entry> <args>` would (``runpy`` runs the entry module as
-    ``__main__``), each with its output in its own log file.
+    """One Python process, started in the repository root with :func:`job_environment` (and the root first on
+    PYTHONPATH, :func:`root_on_pythonpath`), that runs the study's multiruns one after another as
+    `python -m <entry> <args>` would (``runpy`` runs the entry module as ``__main__``), each with its output in its
+    own log file.
 
     Hydra already runs a multirun's jobs one after another in one process; the worker does the same across the
     multiruns of a study, so that torch, Lightning and Hydra are imported once (about 5 s a process on 2 cores)
@@ -246,12 +247,10 @@ class JobWorker:
     the old modules with the new entry module."""
 
     def __init__(self) -> None:
-        here = str(Path(__file__).resolve().parent)
-        # studylib is imported from experiments/, which then leaves the path: the jobs see the path `python -m` gives
-        code = (f"import sys; sys.path.insert(0, {here!r}); import studylib; sys.path.remove({here!r}); "
-                "studylib._worker_loop()")
-        self.proc = subprocess.Popen([sys.executable, "-c", code], cwd=ROOT, env=job_environment(),
-                                     stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+        # the repository root, its folder and first on PYTHONPATH, imports this checkout's experiments and lnf
+        self.proc = subprocess.Popen([sys.executable, "-c", "from experiments import studylib; studylib._worker_loop()"],
+                                     cwd=ROOT, env=root_on_pythonpath(job_environment()), stdin=subprocess.PIPE,
+                                     stdout=subprocess.PIPE, text=True)
 
     def alive(self) -> bool:
         return self.proc.poll() is None
@@ -415,6 +414,13 @@ def job_environment() -> dict[str, str]:
     return env
 
 
+def root_on_pythonpath(env: dict[str, str]) -> dict[str, str]:
+    """`env` with the repository root first on its PYTHONPATH (the entries it had kept after it): a Python process
+    started with it imports this checkout's `experiments` package and lnf from any folder."""
+    rest = [p for p in env.get("PYTHONPATH", "").split(os.pathsep) if p and p != str(ROOT)]
+    return {**env, "PYTHONPATH": os.pathsep.join([str(ROOT), *rest])}
+
+
 def _shown(path: Path) -> str:
     """`path` as a command run from the repository root names it: relative inside the repository, else absolute."""
     path = Path(path).resolve()
@@ -425,7 +431,8 @@ def parse_args(name: str, description: str, argv: Optional[Sequence[str]] = None
                extra: Optional[callable] = None) -> tuple[Study, argparse.Namespace]:
     """The study's command line: ``--config-dir``, ``--scene``, ``--full``/``--smoke``, ``--out``, ``--threads``,
     ``--fresh`` and the study's own options (`extra` adds them to the parser)."""
-    p = argparse.ArgumentParser(description=description, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(prog=f"python -m experiments.{name}", description=description,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
     default = default_experiment()
     p.add_argument("--config-dir", type=Path, default=None, metavar="DIR",
                    help="a Hydra config folder of your own (DIR/scene/<name>.yaml, DIR/experiment/<name>.yaml), "

@@ -24,8 +24,8 @@ from lnf.dataset import (GROUND_TRUTH_FOLDER, SOURCE_ARRAYS, SPLITS, DatasetConf
 from lnf.decoding_table import check_decoding
 from lnf.dynamics_kind import dynamics_kind
 from lnf.error_budget import read_error_budget
-from lnf.evaluation import (EvaluationCost, evaluate_rollouts, evaluation_cost, long_horizon_energy, quadrature_size,
-                            size_text)
+from lnf.evaluation import evaluate_rollouts, long_horizon_energy
+from lnf.evaluation_cost import EvaluationCost, evaluation_cost, quadrature_size, size_text
 from lnf.model import build, load
 from lnf.quadrature import grid_shape_of, midpoint_grid
 from lnf.run_lock import EVALUATION_RESULTS, run_folder_lock, set_aside

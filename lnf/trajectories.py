@@ -31,9 +31,10 @@ from typing import Any, Optional, Sequence
 
 import numpy as np
 
-from lnf.dataset import (CHECKSUM_ALGORITHM, CHECKSUM_ATTR, FORMAT_VERSION, SOURCE_ARRAYS, DatasetError,
-                         _little_endian, _size, _write_array, atomic_h5, check_points, scene_record,
-                         write_root_attributes)
+from lnf.dataset import (CHECKSUM_ALGORITHM, CHECKSUM_ATTR, FORMAT_VERSION, SOURCE_ARRAYS, DatasetError, atomic_h5,
+                         check_points, scene_record, write_root_attributes)
+from lnf.dataset.generate import _size, _write_array
+from lnf.dataset.verify import _little_endian
 
 log = logging.getLogger("lnf.trajectories")
 

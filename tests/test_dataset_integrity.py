@@ -19,8 +19,10 @@ import numpy as np
 import pytest
 
 import lnf.dataset as dataset_module
-from lnf.dataset import (CHECKSUM_ATTR, FORMAT_VERSION, DatasetConfig, DatasetError, _file_problem, _needed_bytes,
-                         dataset_keys, ensure_dataset, generate_dataset, generation_attributes, load_split)
+from lnf.dataset import (CHECKSUM_ATTR, FORMAT_VERSION, DatasetConfig, DatasetError, dataset_keys, ensure_dataset,
+                         generate_dataset, generation_attributes, load_split)
+from lnf.dataset.generate import _needed_bytes
+from lnf.dataset.reuse import _file_problem
 from lnf.scenes import LiftedPendulum
 from lnf.training.datamodule import SnapshotDataModule
 from tiny_dataset import CFG, fresh_file, scene, shared_file  # noqa: F401 (fixtures)
@@ -152,7 +154,7 @@ def test_a_version_1_file_is_regenerated(fresh_file, shared_file, scene, caplog)
 
 def test_verification_reads_one_trajectory_at_a_time(shared_file, monkeypatch):
     """Bounded memory: with a block budget below one trajectory, no read covers two of them."""
-    monkeypatch.setattr(dataset_module, "BLOCK_BYTES", 1, raising=False)
+    monkeypatch.setattr(dataset_module.verify, "BLOCK_BYTES", 1, raising=False)
     reads: dict[str, list[int]] = {}
     original = h5py.Dataset.read_direct
 
@@ -171,7 +173,7 @@ def test_verification_reads_one_trajectory_at_a_time(shared_file, monkeypatch):
 def test_not_enough_space_fails_before_any_temporary(tmp_path, scene, monkeypatch):
     monkeypatch.setattr(shutil, "disk_usage", lambda p: DiskUsage(10 ** 9, 10 ** 9 - 300_000, 300_000))
     opened = []
-    monkeypatch.setattr(dataset_module.h5py, "File", lambda *a, **k: opened.append(a) or pytest.fail("opened"))
+    monkeypatch.setattr(dataset_module.verify.h5py, "File", lambda *a, **k: opened.append(a) or pytest.fail("opened"))
     target = tmp_path / "d.h5"
     with pytest.raises(DatasetError) as err:
         ensure_dataset(scene, CFG, target)
@@ -194,7 +196,7 @@ def test_not_enough_space_keeps_an_older_file(fresh_file, scene, monkeypatch):
 
 
 def _fail_in_second_split(monkeypatch):
-    original = dataset_module._write_split
+    original = dataset_module.generate._write_split
     calls = []
 
     def write_split(group, *args, **kwargs):
@@ -203,7 +205,7 @@ def _fail_in_second_split(monkeypatch):
             raise OSError(errno.ENOSPC, "No space left on device")
         return original(group, *args, **kwargs)
 
-    monkeypatch.setattr(dataset_module, "_write_split", write_split)
+    monkeypatch.setattr(dataset_module.generate, "_write_split", write_split)
 
 
 def _fail_in_fields(monkeypatch, scene):

@@ -13,7 +13,7 @@ def _initial(scene, n):
 def test_worker_processes_simulate_the_same_trajectories_as_one_process(monkeypatch):
     scene = ElasticCantilever(mesh=(4, 2))
     initial, times = _initial(scene, 6), np.linspace(0.0, 0.2, 5)
-    monkeypatch.setattr(D, "SIMULATION_CHUNK", 2)  # three chunks
+    monkeypatch.setattr(D.generate, "SIMULATION_CHUNK", 2)  # three chunks
     monkeypatch.setenv(D.WORKERS_ENV, "1")
     serial = D._simulate(scene, initial, times, "train")
     monkeypatch.setenv(D.WORKERS_ENV, "2")

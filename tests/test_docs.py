@@ -1,6 +1,6 @@
 """The documentation: the site builds with `mkdocs build --strict`, every relative link of the README and the docs
 names a file of the repository, nothing refers to documents outside it, and every results table is what its
-sources under results/ give (experiments/results_tables.py --check)."""
+sources under results/ give (python -m experiments.results_tables --check)."""
 from __future__ import annotations
 
 import csv
@@ -14,11 +14,9 @@ from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "experiments"))
-import results_tables as RT  # noqa: E402
+from experiments import results_tables as RT
 
-sys.path.remove(str(ROOT / "experiments"))
+ROOT = Path(__file__).resolve().parents[1]
 
 # spelled in two parts, so that this file does not contain what it looks for
 FORBIDDEN = ["DESIGN" + ".md", ".." + "/shared"]
@@ -167,8 +165,8 @@ def test_readme_keeps_its_three_commands_first_and_stays_short():
 
 
 def test_results_tables_match_their_sources():
-    proc = subprocess.run([sys.executable, "experiments/results_tables.py", "--check"], cwd=ROOT, capture_output=True,
-                          text=True, timeout=60)
+    proc = subprocess.run([sys.executable, "-m", "experiments.results_tables", "--check"], cwd=ROOT,
+                          capture_output=True, text=True, timeout=60)
     assert proc.returncode == 0, proc.stdout + proc.stderr
 
 
@@ -238,6 +236,26 @@ def test_collect_of_a_pareto_study_records_the_body_dimension_its_summary_states
     (study / "summary.md").write_text("# Pareto study\n\nMachine: x86_64. Command: `python experiments/pareto.py`.\n")
     with pytest.raises(RT.TableError, match="Body dimension"):
         RT.collect("pareto-pendulum", study)
+
+
+def test_collect_reads_a_command_of_either_spelling_and_a_rerun_is_spelled_the_new_way(tmp_path, monkeypatch):
+    """Runs before the studies became the package `experiments` recorded `python experiments/<study>.py`; newer ones
+    record `python -m experiments.<study>` (its dots end no field of the summary line). Both are kept as recorded;
+    the rerun a transcribed table suggests is spelled the new way."""
+    study = tmp_path / "outputs" / "studies" / "pareto"
+    study.mkdir(parents=True)
+    (study / "pareto.csv").write_text("sweep,job,method\nwidth,0,lnf\n")
+    monkeypatch.setattr(RT, "RESULTS", tmp_path / "results")
+    for command in ("python -m experiments.pareto --scene soft_body", "python experiments/pareto.py --scene soft_body"):
+        (study / "summary.md").write_text(f"# Pareto\n\nMachine: x86_64. Command: `{command}`. Body dimension: 3.\n")
+        prov = json.loads((RT.collect("pareto-pendulum", study) / "provenance.json").read_text())
+        assert prov["command"] == command and prov["body_dim"] == 3
+        transcribed = {**prov, "transcribed_from_docs": True}
+        line = RT.provenance_line("pareto-pendulum", transcribed, RT.SPECS["pareto-pendulum"])
+        assert f"by `{command}`" in line and "rerun `python -m experiments.pareto --scene soft_body`" in line
+    assert RT.rerun_command("PYTHONPATH=examples python experiments/stability.py --config-dir examples/conf") == \
+        "PYTHONPATH=examples python -m experiments.stability --config-dir examples/conf"
+    assert RT.rerun_command("python -m lnf.train +experiment=pendulum") == "python -m lnf.train +experiment=pendulum"
 
 
 def test_a_table_of_a_nested_results_file_reads_its_keys_joined_by_slashes(tmp_path, monkeypatch):

@@ -8,8 +8,8 @@ import pytest
 import torch
 
 from lnf import metrics as M
-from lnf.evaluation import (chunked_energy, evaluate_rollouts, evaluation_cost, frame_block, reduction_subset,
-                            trajectory_controls)
+from lnf.evaluation import evaluate_rollouts, reduction_subset, trajectory_controls
+from lnf.evaluation_cost import chunked_energy, evaluation_cost, frame_block
 from helpers import DivergesAtStep
 from lnf.integrators import get_integrator
 from lnf.model import build_model

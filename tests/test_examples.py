@@ -24,7 +24,6 @@ def _env(tmp_path: Path, with_examples: bool = True) -> dict:
 
 
 def test_the_vibrating_string_passes_check_scene():
-    sys.path.insert(0, str(EXAMPLES))
     from vibrating_string import VibratingString
 
     from lnf.scenes.check import check_scene
@@ -61,11 +60,11 @@ def test_the_vibrating_string_trains_evaluates_draws_and_loads_from_its_own_conf
     assert lost.returncode != 0 and "cannot import module 'vibrating_string'" in lost.stderr
     assert "PYTHONPATH" in lost.stderr
 
-    # evaluated on scattered points, in this process (the example's folder on the path, as PYTHONPATH does)
+    # evaluated on scattered points, in this process (the example's folder on the path, as PYTHONPATH does: the
+    # `pythonpath` of pyproject's pytest settings)
     from helpers import compose_config
     from lnf.evaluate import evaluate
 
-    sys.path.insert(0, str(EXAMPLES))
     metrics = evaluate(compose_config("evaluate", [f"ckpt_path={ckpt}", "grid.kind=random", "grid.n_points=50",
                                                    "figures=0", "trust=[vibrating_string]"], tmp_path / "eval"))
     assert "field_rel_l2/all/median" in metrics and metrics["diverged_count"] >= 0
@@ -78,7 +77,6 @@ def test_precomputed_trajectories_from_arrays_train_with_a_scene_that_has_only_i
     from helpers import compose_config
     from lnf.train import train
 
-    sys.path.insert(0, str(EXAMPLES))
     import string_from_arrays
 
     caps = string_from_arrays.StringLagrangian().capabilities()

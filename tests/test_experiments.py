@@ -20,7 +20,7 @@ def _run(args, png_only=False):
 
 
 def test_bench_rollout_step_prints_a_ratio():
-    out = _run(["experiments/bench_rollout_step.py", "--batch", "1", "2", "--width", "16", "--order", "3",
+    out = _run(["-m", "experiments.bench_rollout_step", "--batch", "1", "2", "--width", "16", "--order", "3",
                 "--repeats", "2", "--threads", "1"]).stdout
     rows = [line for line in out.splitlines() if line.strip().startswith(("1 ", "2 "))]
     assert len(rows) == 2 and all("×" in r for r in rows)
@@ -33,7 +33,7 @@ def test_bench_training_measures_this_checkout_and_a_baseline_commit_in_the_same
     import json
 
     out = tmp_path / "bench"
-    _run(["experiments/bench_training.py", "--smoke", "--rounds", "1", "--threads", "1", "--baseline", "HEAD",
+    _run(["-m", "experiments.bench_training", "--smoke", "--rounds", "1", "--threads", "1", "--baseline", "HEAD",
           "--out", str(out)])
     raw = json.loads((out / "bench_training.json").read_text())
     assert set(raw["rows"]) == {"this checkout", "baseline"}
@@ -41,7 +41,7 @@ def test_bench_training_measures_this_checkout_and_a_baseline_commit_in_the_same
         assert row["jets_per_step"] >= 3 and row["step_seconds"] > 0 and row["decode_seconds"] > 0
         assert row["step_flops"] > 0
     summary = (out / "summary.md").read_text()
-    assert summary.startswith("Machine: ") and "Command: `python experiments/bench_training.py --smoke --baseline HEAD`" in summary
+    assert summary.startswith("Machine: ") and "Command: `python -m experiments.bench_training --smoke --baseline HEAD`" in summary
     assert "against the baseline: training step time ×" in summary
     table = raw["rows"]["this checkout"]  # this checkout decodes through a table too, and measures its error
     assert table["table_decode_seconds"] > 0 and table["table_nodes"] >= 16 and 0 <= table["table_error"] <= 1e-5
@@ -54,7 +54,7 @@ def test_bench_defaults_trains_each_checkout_and_scores_it_on_scattered_points(t
     """The whole-run benchmark trains the scene's default in this checkout and in HEAD (a temporary worktree, with
     its own configs), evaluates each checkpoint on scattered points, and writes one table with the ratios."""
     out = tmp_path / "bench"
-    _run(["experiments/bench_defaults.py", "--smoke", "--threads", "1", "--baseline", "HEAD", "--points", "64",
+    _run(["-m", "experiments.bench_defaults", "--smoke", "--threads", "1", "--baseline", "HEAD", "--points", "64",
           "--out", str(out)])
     raw = json.loads((out / "bench_defaults.json").read_text())
     rows = raw["rows"]
@@ -64,7 +64,7 @@ def test_bench_defaults_trains_each_checkout_and_scores_it_on_scattered_points(t
         assert r["grid"] > 0 and r["scattered"] > 0
         assert (out / f"pendulum-{r['checkout']}" / "scattered" / "metrics.json").is_file()
     summary = (out / "summary.md").read_text()
-    assert "Command: `python experiments/bench_defaults.py --scenes pendulum --baseline HEAD --smoke`" in summary
+    assert "Command: `python -m experiments.bench_defaults --scenes pendulum --baseline HEAD --smoke`" in summary
     assert "This checkout against the baseline: pendulum: whole run ×" in summary
     _assert_worktree_removed(raw["baseline_worktree"])
 
@@ -80,7 +80,7 @@ def _assert_worktree_removed(path: str) -> None:
 
 
 def test_probe_settings_reports_json():
-    out = _run(["experiments/probe_settings.py", "--steps", "3", "--train", "2", "--test", "1", "--width", "16",
+    out = _run(["-m", "experiments.probe_settings", "--steps", "3", "--train", "2", "--test", "1", "--width", "16",
                 "--threads", "1"]).stdout
     report = json.loads(out)
     assert report["steps"] == 3
@@ -107,7 +107,7 @@ def _study(name, folder, *extra, tag=""):
 
     env = {**os.environ, "LNF_DATA_DIR": str(folder / "data"), "LNF_FIGURE_PDF": "1"}  # _assert_figure wants the PDF
     out = folder / f"{name}-smoke{tag}"
-    proc = subprocess.run([sys.executable, f"experiments/{name}.py", "--smoke", "--threads", "1", "--out", str(out),
+    proc = subprocess.run([sys.executable, "-m", f"experiments.{name}", "--smoke", "--threads", "1", "--out", str(out),
                            *extra], cwd=ROOT, capture_output=True, text=True, timeout=600, env=env)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     return out, proc.stdout
@@ -128,8 +128,7 @@ def _csv(path):
 
 
 def _methods(rows):
-    sys.path.insert(0, str(ROOT / "experiments"))
-    import studylib
+    from experiments import studylib
 
     return {studylib.method_of(r) for r in rows}
 
@@ -200,9 +199,8 @@ def test_model_size_study_smoke(studies):
 def test_model_size_plot_draws_diverged_runs(tmp_path, monkeypatch):
     """A sweep where every run diverged (inf error, as a 1-epoch elastic model does) is charted, not a crash."""
     monkeypatch.setenv("LNF_FIGURE_PDF", "1")  # _assert_figure checks the PDF too
-    sys.path.insert(0, str(ROOT / "experiments"))
-    import studylib
-    from model_size import ERR, plot
+    from experiments import studylib
+    from experiments.model_size import ERR, plot
 
     study = studylib.Study(name="model_size", scene="elastic", mode="smoke", out=tmp_path, threads=1)
     rows = [{"model.latent_dim": d, "model.width": w, ERR: float("inf")} for d in (1, 2) for w in (8, 16)]
@@ -215,10 +213,9 @@ def test_sparse_noisy_plot_legends_only_what_it_draws(tmp_path, monkeypatch):
     """A method the scene cannot run gets no legend entry; a diverged full-order reference gets no line at
     infinity but says "diverged" in the legend (the bump: the nodal model does not keep its shape)."""
     monkeypatch.setenv("LNF_FIGURE_PDF", "1")  # _assert_figure checks the PDF too
-    sys.path.insert(0, str(ROOT / "experiments"))
     import matplotlib.axes
-    import studylib
-    from sparse_noisy import ERR, plot
+    from experiments import studylib
+    from experiments.sparse_noisy import ERR, plot
 
     legends = []
     draw = matplotlib.axes.Axes.legend
@@ -254,8 +251,7 @@ def test_roofline_study_on_the_double_pendulum_and_the_elastic_scene(studies):
     assert _methods(rows) == {"lnf", "latent_mlp"}
     summary = (out / "summary.md").read_text()
     assert "double_pendulum, d = 2" in summary and "--scene double_pendulum" in summary
-    sys.path.insert(0, str(ROOT / "experiments"))
-    from roofline import step_flops
+    from experiments.roofline import step_flops
 
     # the same width, batch and points: a d = 2 jet has more streams than a d = 1 one
     ours = [r for r in rows if r["method"] == "lnf"]
@@ -283,9 +279,8 @@ def test_roofline_flop_model_matches_torch_flop_counter(experiment, tmp_path):
     from lnf.model import LagrangianNeuralField
     from lnf.quadrature import GaussLegendre
 
-    sys.path.insert(0, str(ROOT / "experiments"))
-    import studylib
-    from roofline import scene_of, step_flops
+    from experiments import studylib
+    from experiments.roofline import scene_of, step_flops
 
     study = studylib.Study(name="roofline", scene=experiment, mode="smoke", out=tmp_path, threads=1)
     scene, d, order, _, clamp, spatial = scene_of(study)  # as roofline.py --scene <experiment> builds it
@@ -336,18 +331,16 @@ EXAMPLES = ROOT / "examples"
 
 def test_a_study_takes_a_config_dir_and_the_relative_paths_of_the_folder_it_is_run_from(tmp_path, monkeypatch,
                                                                                           capsys):
-    sys.path.insert(0, str(ROOT / "experiments"))
-    import studylib as S
+    from experiments import studylib as S
 
     monkeypatch.chdir(tmp_path)
     monkeypatch.setenv("PYTHONPATH", os.path.relpath(EXAMPLES, tmp_path))
     monkeypatch.setenv("LNF_DATA_DIR", "data")
-    monkeypatch.syspath_prepend(str(EXAMPLES))  # what PYTHONPATH does for the study's own process
     study, _ = S.parse_args("pareto", "", ["--config-dir", os.path.relpath(EXAMPLES / "conf", tmp_path),
                                            "--scene", "vibrating_string", "--smoke", "--out", "out"])
     assert study.config_dir == EXAMPLES / "conf" and study.out == (tmp_path / "out").resolve()
     assert study.scene_object().body_dim == 1 and not study.supports("full_order")
-    assert study.command() == ("PYTHONPATH=examples python experiments/pareto.py --smoke --config-dir examples/conf "
+    assert study.command() == ("PYTHONPATH=examples python -m experiments.pareto --smoke --config-dir examples/conf "
                                "--scene vibrating_string")  # reruns it from the repository root
     env = S.job_environment()  # the jobs run in the repository root: the caller's relative paths made absolute
     assert env["PYTHONPATH"] == str(EXAMPLES) and env["LNF_DATA_DIR"] == str((tmp_path / "data").resolve())
@@ -364,23 +357,23 @@ def test_a_study_takes_a_config_dir_and_the_relative_paths_of_the_folder_it_is_r
 
 
 def test_pareto_and_scenes_run_the_vibrating_string_from_its_own_folder(tmp_path):
-    """Started from a folder that is not the repository, as a user would: the example's module on a relative
-    PYTHONPATH, a relative data dir (LNF_DATA_DIR) and relative output folders, which the studies' jobs (run in the
+    """Started from a folder that is not the repository, as a user would: the repository root (which holds the
+    studies' package) and, relative, the example's module on PYTHONPATH, a relative data dir (LNF_DATA_DIR) and relative output folders, which the studies' jobs (run in the
     repository root) must see as the caller meant them; the config folder relative for the study, absolute for
     scenes.py. The string is a 1-D body: no nodal full-order model."""
     work = tmp_path / "work"
     work.mkdir()
-    env = {**os.environ, "PYTHONPATH": os.path.relpath(EXAMPLES, work), "LNF_DATA_DIR": "data",
-           "WANDB_MODE": "offline"}
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.path.relpath(EXAMPLES, work)]),
+           "LNF_DATA_DIR": "data", "WANDB_MODE": "offline"}
 
-    def run(script: str, *args: str) -> str:
-        proc = subprocess.run([sys.executable, str(ROOT / "experiments" / script), *args], cwd=work, env=env,
+    def run(study: str, *args: str) -> str:
+        proc = subprocess.run([sys.executable, "-m", f"experiments.{study}", *args], cwd=work, env=env,
                               capture_output=True, text=True, timeout=600)
         assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
         return proc.stdout
 
     scene = ["--scene", "vibrating_string", "--smoke", "--threads", "1"]
-    stdout = run("pareto.py", "--config-dir", os.path.relpath(EXAMPLES / "conf", work), *scene, "--out", "pareto")
+    stdout = run("pareto", "--config-dir", os.path.relpath(EXAMPLES / "conf", work), *scene, "--out", "pareto")
     out = (work / "pareto").resolve()
     rows = _csv(out / "pareto.csv")
     assert _methods(rows) == {"lnf", "latent_mlp", "pod", "opinf", "opinf_observed"}  # no full-order model in 1-D
@@ -394,7 +387,7 @@ def test_pareto_and_scenes_run_the_vibrating_string_from_its_own_folder(tmp_path
     assert (out / "pareto.png").stat().st_size > 0 and (out / "quadrature.png").stat().st_size > 0
 
     # the acceptance measurements the string's declarations allow, on the Pareto study's width-16 model
-    run("scenes.py", "--config-dir", str(EXAMPLES / "conf"), "--scene", "vibrating_string", "--ckpt",
+    run("scenes", "--config-dir", str(EXAMPLES / "conf"), "--scene", "vibrating_string", "--ckpt",
         "pareto/lnf_width/0/checkpoints/last.ckpt", "--out", "scenes", "--max-modes", "2", "--bb-iterations", "10",
         "--threads", "1")
     result = json.loads((work / "scenes" / "results.json").read_text())
@@ -403,15 +396,13 @@ def test_pareto_and_scenes_run_the_vibrating_string_from_its_own_folder(tmp_path
     assert (work / "scenes" / "vpt.png").is_file() and (work / "scenes" / "modes.png").is_file()
 
 
-def test_stability_on_the_vibrating_string_skips_its_high_energy_part_and_says_why(monkeypatch):
+def test_stability_on_the_vibrating_string_skips_its_high_energy_part_and_says_why():
     """The string defines released_at_rest() but no stability_cases(): the stability study has no high-energy part
     (the other questions run as on any scene, see test_stability_study_smoke_*) and says what would add one; its
     resolution transfer is labelled in points of a 1-D grid."""
-    sys.path.insert(0, str(ROOT / "experiments"))
-    import stability
-    import studylib as S
+    from experiments import stability
+    from experiments import studylib as S
 
-    monkeypatch.syspath_prepend(str(EXAMPLES))
     study, _ = S.parse_args("stability", "", ["--config-dir", str(EXAMPLES / "conf"), "--scene", "vibrating_string",
                                               "--smoke"])
     assert stability.stress_cases(study) is None
@@ -421,8 +412,7 @@ def test_stability_on_the_vibrating_string_skips_its_high_energy_part_and_says_w
 
 
 def test_stability_resolution_transfer_keeps_a_3d_body_in_memory():
-    sys.path.insert(0, str(ROOT / "experiments"))
-    import stability
+    from experiments import stability
 
     assert stability.transfer_resolutions(2) == "16,64,128" and stability.transfer_resolutions(1) == "16,64,128"
     assert max(int(r) for r in stability.transfer_resolutions(3).split(",")) ** 3 <= 32 ** 3
@@ -430,12 +420,10 @@ def test_stability_resolution_transfer_keeps_a_3d_body_in_memory():
 
 
 def test_stability_high_energy_states_per_scene():
-    sys.path.insert(0, str(ROOT / "experiments"))
     import numpy as np
-    import stability
-    from lnf.scenes import LiftedDoublePendulum, LiftedPendulum
 
-    import studylib
+    from experiments import stability, studylib
+    from lnf.scenes import LiftedDoublePendulum, LiftedPendulum
 
     study = type("Study", (), {"out": Path("/nonexistent")})()  # inline states write no file
     for scene, size in [(LiftedPendulum(), 2), (LiftedDoublePendulum(), 4)]:
@@ -452,11 +440,11 @@ def test_stability_high_energy_states_per_scene():
 
 
 def test_pareto_mask_and_study_choices():
-    sys.path.insert(0, str(ROOT / "experiments"))
     import numpy as np
-    import studylib
-    from model_size import choose
-    from stability import failure_dt
+
+    from experiments import studylib
+    from experiments.model_size import choose
+    from experiments.stability import failure_dt
 
     mask = studylib.pareto_mask(np.array([1, 2, 3, 4, np.nan]), np.array([5, 3, 4, 1, 0]))
     assert mask.tolist() == [True, True, False, True, False]
@@ -480,7 +468,7 @@ def test_scenes_script_measures_a_tiny_double_pendulum_checkpoint(tmp_path):
             "evaluation.max_reduction_points=64", f"paths.data_dir={tmp_path / 'data'}"]
     _run(["-m", "lnf.train", "+experiment=double_pendulum", "trainer=smoke", "logger=csv", *data,
           f"hydra.run.dir={run}"], png_only=True)
-    _run(["experiments/scenes.py", "--scene", "double_pendulum", "--ckpt", str(run / "checkpoints" / "last.ckpt"),
+    _run(["-m", "experiments.scenes", "--scene", "double_pendulum", "--ckpt", str(run / "checkpoints" / "last.ckpt"),
           "--out", str(tmp_path / "out"), "--max-modes", "2", "--bb-iterations", "10", "--threads", "1",
           "--measure", "black_box"], png_only=True)
     result = json.loads((tmp_path / "out" / "results.json").read_text())
@@ -494,8 +482,7 @@ def test_scenes_script_chooses_its_measurements_by_what_the_scene_declares():
     damped rollout where a conservative scene can add a damping."""
     import numpy as np
 
-    sys.path[:0] = [str(ROOT / "experiments"), str(ROOT / "examples")]
-    import scenes
+    from experiments import scenes
     from vibrating_string import VibratingString
 
     from lnf.scenes import ElasticCantilever, LiftedDoublePendulum
@@ -533,7 +520,7 @@ def test_scenes_script_measures_a_tiny_elastic_checkpoint(scene, tmp_path):
           f"paths.data_dir={tmp_path / 'data'}", f"hydra.run.dir={run}"], png_only=True)
     out = tmp_path / "out"
     measure = ["speedup", "damped"] if scene == "elastic" else ["loads", "decay"]  # the black box and POD modes: the test above
-    _run(["experiments/scenes.py", "--scene", scene, "--ckpt", str(run / "checkpoints" / "last.ckpt"),
+    _run(["-m", "experiments.scenes", "--scene", scene, "--ckpt", str(run / "checkpoints" / "last.ckpt"),
           "--out", str(out), "--threads", "1", "--measure", *measure], png_only=True)
     result = json.loads((out / "results.json").read_text())
     assert result["measurements"] == measure
@@ -552,12 +539,12 @@ def test_elastic_diagnostics_smoke(tmp_path):
     """Content of both releases on a tiny mesh, and the energy, gradient, curve and tangent diagnostics of a tiny
     checkpoint."""
     reports = tmp_path / "reports"
-    out = _run(["experiments/elastic_diagnostics.py", "--content", "--oracle", "--degree", "1", "2", "--runs", "2",
+    out = _run(["-m", "experiments.elastic_diagnostics", "--content", "--oracle", "--degree", "1", "2", "--runs", "2",
                 "--mesh", "6", "3", "--out", str(reports)]).stdout
     assert "release = 'shape'" in out and "release = 'modal'" in out and "cubic 2-D manifold" in out
     assert "oracle d = 1 reduction" in out and "rollout error in the horizon, median" in out
     oracle = (reports / "oracle" / "summary.md").read_text()  # the tables results_tables.py shows
-    assert "Command: `python experiments/elastic_diagnostics.py --content --oracle --degree 1 2" in oracle
+    assert "Command: `python -m experiments.elastic_diagnostics --content --oracle --degree 1 2" in oracle
     assert "| linear (one POD mode, POD-Galerkin) |" in oracle and "| quadratic |" in oracle
     assert set(json.loads((reports / "oracle" / "oracle.json").read_text())) == {"1", "2"}
     content = (reports / "content" / "summary.md").read_text()
@@ -569,7 +556,7 @@ def test_elastic_diagnostics_smoke(tmp_path):
           "quadrature.order=[4,3]", "evaluation.long_steps=4", "evaluation.long_trajectories=1",
           "model.gradient_weight=1.0", f"paths.data_dir={tmp_path / 'data'}", f"hydra.run.dir={run}"])
     assert "train/gradient" in json.loads((run / "metrics.json").read_text())  # the FEM's ∇_X u reached the loss
-    out = _run(["experiments/elastic_diagnostics.py", "--ckpt", str(run / "checkpoints" / "last.ckpt")]).stdout
+    out = _run(["-m", "experiments.elastic_diagnostics", "--ckpt", str(run / "checkpoints" / "last.ckpt")]).stdout
     assert "T_FEM" in out and "velocity-gradient relative error" in out
     assert "FEM through φ: small-amplitude period" in out and "model: rollout error in the horizon" in out
     assert "period of the learned tangent under the FEM's K_t" in out
@@ -578,7 +565,7 @@ def test_elastic_diagnostics_smoke(tmp_path):
 def test_streaming_benchmark_smoke(tmp_path):
     """experiments/streaming.py on a tiny dataset: it needs a writable memory cgroup, and says so without one."""
     out = tmp_path / "results.json"
-    proc = subprocess.run([sys.executable, "experiments/streaming.py", "--gib", "0.02", "--limit-gib", "1.5",
+    proc = subprocess.run([sys.executable, "-m", "experiments.streaming", "--gib", "0.02", "--limit-gib", "1.5",
                            "--steps", "2", "--warmup", "1", "--loader-batches", "3", "--runs", "lazy,in_memory",
                            "--data-dir", str(tmp_path / "data"),
                            "--out", str(out)], cwd=ROOT, capture_output=True, text=True, timeout=600)
@@ -592,15 +579,14 @@ def test_streaming_benchmark_smoke(tmp_path):
     assert lazy["returncode"] == 0 and lazy["train_snapshots_per_s"] > 0 and lazy["peak_rss_bytes"] > 0
     assert baseline["train_rate_vs_in_memory"] == 1.0 and lazy["limit_bytes"] == int(1.5 * 2 ** 30)
     summary = (tmp_path / "summary.md").read_text()  # the table results_tables.py shows in docs/scaling.md
-    assert "Command: `python experiments/streaming.py --gib 0.02" in summary and "Machine: " in summary
+    assert "Command: `python -m experiments.streaming --gib 0.02" in summary and "Machine: " in summary
     assert "| streaming, 1.5 GiB limit |" in summary and "| in memory, no limit (the baseline, same run) |" in summary
     assert summary.rstrip().endswith("| 1.00 |")
 
 
 def test_baselines_drop_the_neural_settings_of_a_scene_experiment():
     """+experiment=bump sets a SIREN width: POD and the full-order model must not receive it."""
-    sys.path.insert(0, str(ROOT / "experiments"))
-    import studylib as S
+    from experiments import studylib as S
 
     study = S.Study(name="x", scene="bump", mode="reduced", out=ROOT / "outputs" / "unused", threads=1)
     assert {"~model.width", "~model.reduction_starts"} <= set(study.method("pod"))
@@ -615,8 +601,7 @@ def test_rayleigh_ritz_of_the_exact_mode():
     import numpy as np
     import torch
 
-    sys.path.insert(0, str(ROOT / "experiments"))
-    from elastic_diagnostics import rayleigh_ritz
+    from experiments.elastic_diagnostics import rayleigh_ritz
 
     from lnf.scenes.elastic import ElasticCantilever
 
@@ -647,8 +632,7 @@ def test_rayleigh_ritz_of_the_exact_mode():
 
 def test_pareto_leaves_out_quadrature_rules_too_large_for_the_body(capsys):
     """32³ Gauss–Legendre points on a 3-D body took 24 GB in one evaluation job: such rules are left out, by name."""
-    sys.path.insert(0, str(ROOT / "experiments"))
-    import pareto
+    from experiments import pareto
 
     class Study:
         name = "pareto-x"
@@ -672,8 +656,7 @@ def test_scenes_script_never_writes_a_checkpoints_data_path_outside_the_data_fol
 
     import torch
 
-    sys.path[:0] = [str(ROOT / "experiments")]
-    import scenes
+    from experiments import scenes
     from helpers import TINY, compose_config
 
     import lnf
@@ -708,12 +691,11 @@ def test_seeds_study_smoke(studies):
     assert sorted(r["seed"] for r in rows) == ["0", "1"]
     summary = (out / "summary.md").read_text()
     assert "worst ÷ median" in summary and ("Robust" in stdout or "Not robust" in stdout)
-    assert "Command: `python experiments/seeds.py --smoke --seeds 2`" in summary
+    assert "Command: `python -m experiments.seeds --smoke --seeds 2`" in summary
 
 
 def test_seed_spread_counts_a_diverged_seed_as_the_worst():
-    sys.path.insert(0, str(ROOT / "experiments"))
-    from seeds import spread
+    from experiments.seeds import spread
 
     rows = [{"seed": 0, "field_rel_l2/all/median": 0.05, "diverged_count": 0},
             {"seed": 1, "field_rel_l2/all/median": 0.10, "diverged_count": 0},

@@ -1,13 +1,10 @@
 """Gappy POD (lnf.baselines.gappy_pod) and the "OpInf (observed)" variant (experiments/opinf_observed.py)."""
-from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
 from lnf.baselines.gappy_pod import complete_snapshots, gappy_encode, interpolation_matrix, select_rank
-
-ROOT = Path(__file__).resolve().parents[1]
 
 
 def low_rank(n=8, T=15, Nc=40, A=2, rank=3, fraction=0.4, seed=0):
@@ -112,8 +109,7 @@ def test_opinf_observed_end_to_end_on_a_tiny_standing_wave(monkeypatch):
     pytest.importorskip("opinf")
     from test_operator_inference import oscillators
 
-    monkeypatch.syspath_prepend(str(ROOT / "experiments"))
-    import opinf_observed
+    from experiments import opinf_observed
 
     monkeypatch.setattr(opinf_observed, "COMPLETION_RANKS", (3, 4, 5))  # fewer candidates: a faster test
 

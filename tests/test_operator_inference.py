@@ -100,8 +100,7 @@ def test_without_opinf_the_error_names_the_extra(monkeypatch):
 
 
 def test_study_script_refuses_a_bad_rank_before_any_data(tmp_path, monkeypatch):
-    monkeypatch.syspath_prepend(str(ROOT / "experiments"))
-    import operator_inference as script
+    from experiments import operator_inference as script
 
     monkeypatch.setenv("LNF_DATA_DIR", str(tmp_path / "data"))
     with pytest.raises(SystemExit, match="--ranks: a rank must be an integer ≥ 1, got 0"):
@@ -113,12 +112,12 @@ def test_study_script_refuses_a_bad_rank_before_any_data(tmp_path, monkeypatch):
 def test_study_script_smoke_on_the_pendulum(tmp_path):
     env = {**os.environ, "LNF_DATA_DIR": str(tmp_path / "data")}
     out = tmp_path / "opinf"
-    proc = subprocess.run([sys.executable, "experiments/operator_inference.py", "--smoke", "--scene", "pendulum",
+    proc = subprocess.run([sys.executable, "-m", "experiments.operator_inference", "--smoke", "--scene", "pendulum",
                            "--ranks", "1", "2", "--observed", "--out", str(out)], cwd=ROOT, capture_output=True, text=True,
                           timeout=300, env=env)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     summary = (out / "summary.md").read_text()
-    assert summary.startswith("Machine: ") and "Command: `python experiments/operator_inference.py --smoke" in summary
+    assert summary.startswith("Machine: ") and "Command: `python -m experiments.operator_inference --smoke" in summary
     assert "| method | rank r | operators |" in summary and "| OpInf | 2 |" in summary
     rows = json.loads((out / "operator_inference.json").read_text())["rows"]
     # each rank on the full states, then on the sparse observations (gappy POD, completion rank 2 under --smoke)

@@ -254,7 +254,7 @@ def test_save_figure_cleans_up_on_failure(tmp_path, monkeypatch):
     def boom(*a, **k):
         raise RuntimeError("disk full")
 
-    monkeypatch.setattr(plotting.os, "replace", boom)
+    monkeypatch.setattr(plotting.save.os, "replace", boom)
     with pytest.raises(RuntimeError, match="disk full"):
         save_figure(fig, tmp_path / "x.png")
     assert list(tmp_path.iterdir()) == []
@@ -277,9 +277,9 @@ def test_no_pyplot_import():
     """lnf.plotting never imports pyplot (no display needed, no global figure state)."""
     import ast
 
-    tree = ast.parse(Path(plotting.__file__).read_text(encoding="utf-8"))
+    trees = [ast.parse(f.read_text(encoding="utf-8")) for f in sorted(Path(plotting.__file__).parent.glob("*.py"))]
     imported = set()
-    for node in ast.walk(tree):
+    for node in (n for tree in trees for n in ast.walk(tree)):
         if isinstance(node, ast.Import):
             imported.update(a.name for a in node.names)
         elif isinstance(node, ast.ImportFrom):
@@ -338,7 +338,7 @@ def test_figure3_scattered_1d_points_unsorted_non_uniform(data, tmp_path):
     _assert_png(path, min_bytes=20_000)
     # latent, total energy, energy exchange; 3 space–time panels + their 3 colour bars, 1 line-plot panel
     assert len(fig.axes) == 10
-    assert _colorbar_labels(fig) == ["field q", "field q", plotting._ERROR_LABEL]
+    assert _colorbar_labels(fig) == ["field q", "field q", plotting.style._ERROR_LABEL]
     mesh = fig.axes[3].collections[0]  # the "predicted" space–time panel
     assert fig.axes[3].get_title() == "predicted"
     coords = mesh.get_coordinates()  # (T + 1, N + 1, 2) cell corners
@@ -366,7 +366,7 @@ def test_figure3_scattered_2d_random_points_with_nan_block(data, tmp_path):
                              field_label="field q₃")
     _assert_png(save_figure(fig, tmp_path / "scattered_2d.png"), min_bytes=20_000)
     assert len(fig.axes) == 3 + 3 * 2 + 2  # latent + 2 energy panels, 3 rows × 2 snapshots, 2 colour bars
-    assert _colorbar_labels(fig) == ["field q₃", plotting._ERROR_LABEL]
+    assert _colorbar_labels(fig) == ["field q₃", plotting.style._ERROR_LABEL]
     panels = [ax for ax in fig.axes[3:] if ax.get_label() != "<colorbar>"]
     for ax in panels:
         assert ax.get_xlim() == (-1.0, 1.0) and ax.get_ylim() == (0.0, 2.0)
@@ -396,7 +396,7 @@ def test_figure3_scattered_3d_random_points_middle_slab(data, tmp_path):
     assert len(fig.axes) == 3 + 3 * 2 + 2
     n_slab = int(np.count_nonzero(np.abs(pts[:, 2]) <= 1.0 / 16))
     labels = _colorbar_labels(fig)
-    assert labels[0] == f"field q\n(slab X₃ ≈ 0 ± 0.062, {n_slab} points)" and labels[1] == plotting._ERROR_LABEL
+    assert labels[0] == f"field q\n(slab X₃ ≈ 0 ± 0.062, {n_slab} points)" and labels[1] == plotting.style._ERROR_LABEL
     tri = fig.axes[3].collections[0]
     assert len(tri.get_paths()) == np.asarray(tri.get_array()).size > n_slab  # ~2·n_slab triangles
     assert fig.axes[3].get_xlim() == (0.0, 2.0) and fig.axes[3].get_ylim() == (0.0, 1.0)
@@ -440,8 +440,8 @@ def test_save_figure_writes_a_pdf_beside_the_png_atomically(tmp_path, monkeypatc
     """A PNG (200 dpi) and a PDF of the same stem, each through a temporary name in the same folder and
     os.replace; the PNG's path is returned; pdf=False writes the PNG alone."""
     renamed = []
-    replace = plotting.os.replace
-    monkeypatch.setattr(plotting.os, "replace", lambda a, b: renamed.append((Path(a), Path(b))) or replace(a, b))
+    replace = plotting.save.os.replace
+    monkeypatch.setattr(plotting.save.os, "replace", lambda a, b: renamed.append((Path(a), Path(b))) or replace(a, b))
     out = save_figure(_small_figure(), tmp_path / "figs" / "f.png")
     assert out == tmp_path / "figs" / "f.png" and out.read_bytes()[:8] == PNG_MAGIC
     pdf = tmp_path / "figs" / "f.pdf"
@@ -458,14 +458,14 @@ def test_save_figure_writes_a_pdf_beside_the_png_atomically(tmp_path, monkeypatc
 
 
 def test_save_figure_leaves_no_temporary_when_the_pdf_fails(tmp_path, monkeypatch):
-    replace = plotting.os.replace
+    replace = plotting.save.os.replace
 
     def fail_on_pdf(a, b):
         if str(b).endswith(".pdf"):
             raise OSError("disk full")
         replace(a, b)
 
-    monkeypatch.setattr(plotting.os, "replace", fail_on_pdf)
+    monkeypatch.setattr(plotting.save.os, "replace", fail_on_pdf)
     with pytest.raises(OSError, match="disk full"):
         save_figure(_small_figure(), tmp_path / "x.png")
     assert [p.name for p in tmp_path.iterdir() if "tmp" in p.name] == []
@@ -485,11 +485,11 @@ def test_error_colour_scale_is_not_set_by_one_outlier(data):
     fig = figure3(data["t"], data["q_pred"], data["q_proj"], data["energies"], G, BOUNDS, pred,
                   data["true_fields"], [12, 87], H)
     err_panel = next(ax for ax in fig.axes if ax.get_ylabel().startswith("|pred − true|"))
-    cbar, (lo, hi) = _colorbar_of(fig, plotting._ERROR_LABEL)
+    cbar, (lo, hi) = _colorbar_of(fig, plotting.style._ERROR_LABEL)
     assert err_panel.images[0].get_clim() == (lo, hi)  # every panel of the row on the colour bar's scale
     err = np.abs(pred - data["true_fields"])[[12, 87]]
     assert lo == 0.0 and hi < 0.1 * err.max() and hi >= np.percentile(err, 90)
-    assert cbar.extend == "max" and cbar.ax.get_ylabel() == plotting._ERROR_LABEL
+    assert cbar.extend == "max" and cbar.ax.get_ylabel() == plotting.style._ERROR_LABEL
     cmap = err_panel.images[0].get_cmap()
     assert np.mean(cmap(0.0)[:3]) > 0.8 > np.mean(cmap(1.0)[:3])  # small errors light, large ones dark
     # the field scale: the true field's range; the saturated prediction gets an arrow, the truth none
@@ -499,7 +499,7 @@ def test_error_colour_scale_is_not_set_by_one_outlier(data):
     # errors with no outlier: the whole range, no arrow
     fig = figure3(data["t"], data["q_pred"], data["q_proj"], data["energies"], G, BOUNDS, data["pred_fields"],
                   data["true_fields"], [12, 87], H)
-    cbar, (_, hi) = _colorbar_of(fig, plotting._ERROR_LABEL)
+    cbar, (_, hi) = _colorbar_of(fig, plotting.style._ERROR_LABEL)
     err = np.abs(data["pred_fields"] - data["true_fields"])[[12, 87]]
     assert hi <= err.max() and (cbar.extend == "neither" or hi >= np.percentile(err, 99) * 0.999)
 
@@ -520,7 +520,7 @@ def test_error_colour_scale_is_robust_on_every_body(data, kind):
         pred[:, 7] = 1e3
         fig = figure3(data["t"], data["q_pred"], data["q_proj"], data["energies"], None, BOUNDS, pred, true,
                       [12, 87], H, points=pts)
-    cbar, (_, hi) = _colorbar_of(fig, plotting._ERROR_LABEL)
+    cbar, (_, hi) = _colorbar_of(fig, plotting.style._ERROR_LABEL)
     assert hi < 1.0 and cbar.extend == "max"
 
 

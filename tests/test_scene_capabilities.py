@@ -3,19 +3,16 @@ the built-in experiments' declarations reproduce the tables the studies used to 
 one's own gets sensible defaults, and no study names a built-in scene."""
 import ast
 import re
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
+from experiments import studylib
 from lnf.scenes.base import DiscretePotential, GeneralizedForce, Scene, StabilityCases
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "experiments"))
-
-import studylib  # noqa: E402
 
 EXPERIMENTS = ("pendulum", "double_pendulum", "bump", "elastic", "elastic_actuated")
 
@@ -76,10 +73,10 @@ def test_the_default_scene_keeps_the_old_command_and_output_folder():
     default, _ = studylib.parse_args("pareto", "", [])
     assert default.scene == "pendulum" and default.is_default_scene()
     assert default.out == ROOT / "outputs" / "studies" / "pareto"
-    assert default.command() == "python experiments/pareto.py"
+    assert default.command() == "python -m experiments.pareto"
     other, _ = studylib.parse_args("pareto", "", ["--scene", "bump", "--smoke"])
     assert not other.is_default_scene() and other.out.name == "pareto-smoke-bump"
-    assert other.command() == "python experiments/pareto.py --smoke --scene bump"
+    assert other.command() == "python -m experiments.pareto --smoke --scene bump"
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -153,7 +150,7 @@ def test_a_scene_with_only_the_required_core_gets_sensible_defaults():
 
 
 def test_a_scene_overrides_its_declarations_and_the_studies_follow():
-    import stability
+    from experiments import stability
 
     class Costly(Membrane):
         expensive_reference = True

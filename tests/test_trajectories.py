@@ -9,8 +9,8 @@ import pytest
 import torch
 
 from helpers import TINY, compose_config
-from lnf.dataset import (DatasetConfig, DatasetError, _write_array, ensure_dataset, load_split, stored_generation,
-                         verify_dataset)
+from lnf.dataset import DatasetConfig, DatasetError, ensure_dataset, load_split, stored_generation, verify_dataset
+from lnf.dataset.generate import _write_array
 from lnf.scenes import LiftedPendulum
 from lnf.trajectories import Trajectories, write_dataset
 

@@ -292,8 +292,8 @@ class Scene:
         """A copy of the scene with mass-proportional damping −α ω0 q̇ of `rate` α [1/s] (its full-order reference
         and its :meth:`generalized_force` both damped). Pulled back through any embedding φ this force is exactly
         −α M̃(q̃) q̃̇, so a model trained on the undamped scene predicts the damped one without retraining."""
-        raise self._missing("with_damping", "the damped-energy measurement (experiments/scenes.py --measure damped) "
-                            "needs")
+        raise self._missing("with_damping", "the damped-energy measurement (python -m experiments.scenes --measure "
+                            "damped) needs")
 
     # -- the full-order model (optional) -------------------------------------------------------
     def sample_initial_states(self, n: int, rng: np.random.Generator) -> np.ndarray:

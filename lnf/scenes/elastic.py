@@ -23,7 +23,7 @@ below the CFL limit, or with the implicit midpoint rule (`integrator`) at any st
   tangent stiffness there: the inertial load of that mode at a turning point, whose linear response is δ φ₁.
   The load is removed at t = 0; the initial velocity is the tip speed times φ₁. The fast modes stay nearly at
   rest: on 16 runs (δ ≤ 0.15 m, tip speed ≤ 0.5 m/s) 2 POD modes leave 1.6 % of the displacement and 3.2 % of
-  the velocity, against 6.4 % and 64 % for ``"shape"`` (`python experiments/elastic_diagnostics.py --content`).
+  the velocity, against 6.4 % and 64 % for ``"shape"`` (`python -m experiments.elastic_diagnostics --content`).
 """
 from __future__ import annotations
 
