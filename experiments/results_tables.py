@@ -683,7 +683,8 @@ def _git(*args: str) -> str:
 
 def _run_record(folder: Path) -> dict[str, Any]:
     """run.json of the first job of a study folder (or of a run folder): its commit, machine, start."""
-    for path in [folder / "run.json", *sorted(folder.glob("*/*/run.json"))]:
+    jobs = sorted(p for p in folder.glob("*/*/run.json") if ".replaced-" not in p.parent.parent.name)  # kept aside
+    for path in [folder / "run.json", *jobs]:
         if path.is_file():
             try:
                 return json.loads(path.read_text())

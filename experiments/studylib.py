@@ -21,7 +21,6 @@ import csv
 import json
 import os
 import platform
-import shutil
 import subprocess
 import sys
 import time
@@ -191,13 +190,13 @@ class Study:
         cmd = [sys.executable, "-m", entry, *self.hydra_args(), "-m", *overrides, f"hydra.sweep.dir={folder}",
                "hydra.sweep.subdir=${hydra.job.num}"]
         stamp = folder / "command.json"
-        if self.fresh and folder.exists():
-            shutil.rmtree(folder)
-        if stamp.is_file() and json.loads(stamp.read_text()) == cmd[1:] and _all_done(folder):
+        if stamp.is_file() and json.loads(stamp.read_text()) == cmd[1:] and _all_done(folder) and not self.fresh:
             print(f"[{self.name}] reusing {folder}")
         else:
             if folder.exists():
-                shutil.rmtree(folder)
+                kept = keep_aside(folder)
+                print(f"[{self.name}] {sweep}: the results already there (another command, unfinished, or --fresh) "
+                      f"are kept as {kept}", flush=True)
             folder.mkdir(parents=True)
             print(f"[{self.name}] {sweep}: python -m {entry} {' '.join(self.hydra_args() + ['-m'])} "
                   f"{' '.join(overrides)}", flush=True)
@@ -489,6 +488,17 @@ def parse_args(name: str, description: str, argv: Optional[Sequence[str]] = None
 # ---------------------------------------------------------------------------------------------------
 def _job_dirs(folder: Path) -> list[Path]:
     return sorted((p for p in folder.iterdir() if p.is_dir() and p.name.isdigit()), key=lambda p: int(p.name))
+
+
+def keep_aside(folder: Path) -> Path:
+    """Rename `folder` to `<name>.replaced-<UTC time>[-n]` beside it, so that a rerun never deletes results (a sweep
+    run from another checkout, with other settings, or interrupted); returns the new path."""
+    stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
+    target, n = folder.with_name(f"{folder.name}.replaced-{stamp}"), 1
+    while target.exists():
+        target, n = folder.with_name(f"{folder.name}.replaced-{stamp}-{n}"), n + 1
+    folder.rename(target)
+    return target
 
 
 def _all_done(folder: Path) -> bool:

@@ -703,3 +703,31 @@ def test_seed_spread_counts_a_diverged_seed_as_the_worst():
     (all_,) = [r for r in spread(rows) if r["window"] == "all"]
     assert all_["median"] == 0.10 and all_["worst_seed"] == 2 and all_["worst_over_median"] == float("inf")
     assert all_["diverged_seeds"] == "2"
+
+
+def test_a_sweep_run_again_with_another_command_keeps_the_old_results(tmp_path, monkeypatch):
+    """A sweep folder whose command differs (another checkout, other settings), is unfinished, or meets --fresh is
+    renamed aside, never deleted (it used to be removed: 70 minutes of runs lost to a rerun from another worktree)."""
+    from experiments import studylib
+
+    def fake_worker(entry, args, log):  # one finished job, as Hydra lays it out
+        job = Path(next(a.split("=", 1)[1] for a in args if a.startswith("hydra.sweep.dir="))) / "0"
+        job.mkdir(parents=True)
+        (job / "metrics.json").write_text(json.dumps({"field_rel_l2/all/median": 0.5}))
+        log.write_text("ok\n")
+        return 0
+
+    monkeypatch.setattr(studylib, "run_in_worker", fake_worker)
+    monkeypatch.setattr(studylib, "collect", lambda folder, sweep, label=None: [])
+    study = studylib.Study(name="x", scene="pendulum", mode="smoke", out=tmp_path, threads=1)
+    study.multirun("sweep", ["model.width=8"])
+    (tmp_path / "sweep" / "0" / "mine.txt").write_text("a user's file")
+    study.multirun("sweep", ["model.width=8"])  # the same command, finished: reused, nothing moved
+    assert [p.name for p in tmp_path.iterdir()] == ["sweep"]
+    study.multirun("sweep", ["model.width=16"])  # another command: the old folder is kept aside
+    kept = [p for p in tmp_path.iterdir() if p.name.startswith("sweep.replaced-")]
+    assert len(kept) == 1 and (kept[0] / "0" / "mine.txt").read_text() == "a user's file"
+    assert (tmp_path / "sweep" / "0" / "metrics.json").is_file()
+    study.fresh = True
+    study.multirun("sweep", ["model.width=16"])  # --fresh: kept aside too
+    assert len([p for p in tmp_path.iterdir() if p.name.startswith("sweep.replaced-")]) == 2
