@@ -3,7 +3,8 @@
 Each study script runs `python -m lnf.train -m ...` (and `python -m lnf.evaluate -m ...`) as Hydra
 multiruns into ``outputs/studies/<study>/<sweep>/<job>/``, collects every job's ``metrics.json`` with
 its overrides into one CSV, and draws its charts from that CSV. A sweep whose jobs all finished with the
-same command is reused (delete the folder or pass --fresh to rerun it). Every study takes
+same command is reused (pass --fresh to rerun it); a folder that is not reused is renamed
+``<sweep>.replaced-<UTC time>``, never deleted (:func:`keep_aside`). Every study takes
 ``--scene`` (any ``conf/experiment/<scene>.yaml``, or ``<DIR>/experiment/<scene>.yaml`` of a config folder of
 your own given with ``--config-dir DIR``, as ``python -m lnf.train --config-dir DIR`` takes it), ``--full`` (the
 full study: the default model size and training budget) and ``--smoke`` (tiny settings, for the test suite).
