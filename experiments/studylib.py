@@ -248,7 +248,8 @@ class JobWorker:
 
     def __init__(self) -> None:
         # the repository root, its folder and first on PYTHONPATH, imports this checkout's experiments and lnf
-        self.proc = subprocess.Popen([sys.executable, "-c", "from experiments import studylib; studylib._worker_loop()"],
+        loop = f"from experiments import studylib; studylib._worker_loop(parent={os.getpid()})"
+        self.proc = subprocess.Popen([sys.executable, "-c", loop],
                                      cwd=ROOT, env=root_on_pythonpath(job_environment()), stdin=subprocess.PIPE,
                                      stdout=subprocess.PIPE, text=True)
 
@@ -327,12 +328,29 @@ def _sources_changed(since: float, entry: str) -> bool:
     return False
 
 
-def _worker_loop() -> None:
+def _exit_with(parent: int, every: float = 1.0) -> None:
+    """End this process as soon as `parent` (a pid) is no longer its parent: a study killed mid-job must not leave
+    its worker training on (it would be adopted by init and hold the CPU for the rest of the job)."""
+    import threading
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(every)
+        os._exit(1)  # the job's files are written by temporary name and rename: nothing is left half-written
+
+    threading.Thread(target=watch, name="lnf-worker-parent-watch", daemon=True).start()
+
+
+def _worker_loop(parent: Optional[int] = None) -> None:
     """The worker's side of :class:`JobWorker`: one JSON request a line on stdin ({"module", "args", "log"}), one
     reply a line ({"returncode"}, or {"stale": true} and the worker ends) on the stdout it started with; file
-    descriptors 1 and 2 go to the request's log while it runs, to /dev/null between requests."""
+    descriptors 1 and 2 go to the request's log while it runs, to /dev/null between requests. With `parent` (the
+    study's pid) it ends when that process has gone, even in the middle of a job."""
     import runpy
     import traceback
+
+    if parent is not None:
+        _exit_with(parent)
 
     from hydra.core.global_hydra import GlobalHydra
 

@@ -731,3 +731,52 @@ def test_a_sweep_run_again_with_another_command_keeps_the_old_results(tmp_path, 
     study.fresh = True
     study.multirun("sweep", ["model.width=16"])  # --fresh: kept aside too
     assert len([p for p in tmp_path.iterdir() if p.name.startswith("sweep.replaced-")]) == 2
+
+
+def _process_ended(pid: int) -> bool:
+    """Whether `pid` has exited (gone, or a zombie no one reaped yet)."""
+    try:
+        with open(f"/proc/{pid}/stat") as fh:
+            return fh.read().split(")")[-1].split()[0] in ("Z", "X")
+    except FileNotFoundError:
+        return True
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads process states from /proc")
+def test_a_study_killed_mid_job_takes_its_job_worker_with_it(tmp_path):
+    """A study killed with SIGKILL (no atexit) while its worker runs a long job: the worker ends too, instead of
+    training on as an orphan."""
+    import signal
+    import time
+
+    log = tmp_path / "job.log"
+    study = (
+        "import json, sys, time\n"
+        "from experiments import studylib\n"
+        "worker = studylib.JobWorker()\n"
+        "request = {'module': 'timeit', 'args': ['-n', '1', '-r', '1', 'import time; time.sleep(120)'],"
+        f" 'log': {str(log)!r}}}\n"
+        "worker.proc.stdin.write(json.dumps(request) + '\\n'); worker.proc.stdin.flush()\n"
+        "print(worker.proc.pid, flush=True)\n"
+        "time.sleep(300)\n"
+    )
+    parent = subprocess.Popen([sys.executable, "-c", study], cwd=ROOT, stdout=subprocess.PIPE, text=True)
+    worker = None
+    try:
+        worker = int(parent.stdout.readline())
+        deadline = time.monotonic() + 120
+        while not log.exists() and time.monotonic() < deadline:  # the worker has taken the job
+            time.sleep(0.2)
+        assert log.exists(), "the job worker never started its job"
+        assert not _process_ended(worker)
+        parent.send_signal(signal.SIGKILL)
+        parent.wait()
+        deadline = time.monotonic() + 30
+        while not _process_ended(worker) and time.monotonic() < deadline:
+            time.sleep(0.2)
+        assert _process_ended(worker), "the job worker outlived the study that started it"
+    finally:
+        parent.kill()
+        parent.wait()
+        if worker is not None and not _process_ended(worker):
+            os.kill(worker, signal.SIGKILL)
