@@ -48,13 +48,15 @@ class Completion:
     """lnf's training and validation observations completed by gappy POD, shared by every OpInf rank fitted on them.
 
     fields, velocities: (n_train + n_val, train_times, Nc, A) completed coarse samples; P (Nf, Nc) the coarse → fine
-    interpolation; mass (Nc,) POD weights; metric_weights (Nc,); rank, errors (the cross-validation's, or None),
+    interpolation; mass (Nc,) POD weights; point_weights (Nf,) the fine points' quadrature weights (uniform where the
+    file has none) and metric_weights (Nc,) their share on the coarse points; rank, errors (the cross-validation's, or None),
     info (of :func:`complete_snapshots`), seconds (the completion with its rank selection)."""
 
     fields: np.ndarray
     velocities: np.ndarray
     P: Any
     mass: np.ndarray
+    point_weights: np.ndarray
     metric_weights: np.ndarray
     rank: int
     errors: Optional[dict[int, float]]
@@ -91,7 +93,7 @@ def complete_observations(scene: Any, splits: dict[str, Any], completion_rank: O
         completion_rank, errors = select_rank(joint, masks, ranks, iterations=min(iterations, cv_iterations),
                                               **options)
     done, info = complete_snapshots(joint, masks, completion_rank, iterations=iterations, **options)
-    return Completion(done[..., :A], done[..., A:] / s, P, mass, metric_weights, int(completion_rank), errors, info,
+    return Completion(done[..., :A], done[..., A:] / s, P, mass, qw, metric_weights, int(completion_rank), errors, info,
                       time.perf_counter() - start)
 
 
@@ -112,14 +114,12 @@ def evaluate_observed(scene: Any, splits: dict[str, Any], rank: int, completion_
     train, val, test = splits["train"], splits["val"], splits["test"]
     T, K, n_tr, A = len(test.times), train.train_times, len(train.masks), test.coarse_fields.shape[-1]
     P, mass, metric_weights, info = completion.P, completion.mass, completion.metric_weights, completion.info
-    cq, cv = completion.fields, completion.velocities
-    Nf = test.fields.shape[2]
-    qw = np.full(Nf, 1.0 / Nf) if test.weights is None else np.asarray(test.weights, dtype=np.float64)
-    start = time.perf_counter() - completion.seconds
+    cq, cv, qw = completion.fields, completion.velocities, completion.point_weights
+    start = time.perf_counter()
     model = OperatorInference(rank).fit(cq[:n_tr], cv[:n_tr], K, cq[n_tr:], cv[n_tr:], point_weights=mass,
                                         metric_weights=metric_weights, controls=split_controls(scene, train),
                                         val_controls=split_controls(scene, val))
-    fit_seconds = time.perf_counter() - start
+    fit_seconds = completion.seconds + (time.perf_counter() - start)  # the completion is part of the fit
 
     def gappy_states(i: int, fields: np.ndarray, velocities: np.ndarray) -> np.ndarray:
         """Reduced states (T', r) of trajectory i's samples (T', Nc, A) from its observed points only."""

@@ -62,6 +62,7 @@ def main() -> None:
     import lnf
     from lnf.dataset import load_split
     from lnf.evaluation import long_horizon_energy
+    from lnf.integrators import get_integrator
 
     model = lnf.load(run_dir / "checkpoints" / "last.ckpt")
     split = load_split(model.checkpoint["data"]["path"], "test")
@@ -74,7 +75,7 @@ def main() -> None:
         ("field_rel_l2 median, all 100 samples, 64x64", metrics["field_rel_l2/all/median"], "<=", 0.02),
         ("field_rel_l2 median, extrapolation half", metrics["field_rel_l2/extrapolation/median"], "<=", 0.03),
         ("energy_rel_err (max over test trajectories)", metrics["energy_rel_err/max"], "<=", 0.02),
-        (f"energy_drift over {args.steps} steps, {integrator['_target_'].rsplit('.', 1)[-1]} (max)",
+        (f"energy_drift over {args.steps} steps, {get_integrator(integrator).name} (max)",
          long["energy_drift_long/max"], "<=", 1e-3),
     ]
     print(f"\nmachine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, torch {torch.__version__}")

@@ -84,13 +84,14 @@ def scene_of(study: S.Study) -> tuple[Any, int, Any, int, bool, bool]:
     from omegaconf import OmegaConf
 
     from lnf.model import build
+    from lnf.quadrature import GaussLegendre
 
     cfg = study.composed()
     scene = study.scene_object()
-    if not str(cfg.quadrature.get("_target_", "")).endswith("GaussLegendre"):
+    quadrature = OmegaConf.to_container(cfg.quadrature, resolve=True)
+    if not isinstance(build(quadrature), GaussLegendre):
         sys.exit(f"roofline.py --scene {study.scene}: expected the experiment to use a Gauss–Legendre quadrature "
                  f"(quadrature=gauss_legendre), got {cfg.quadrature.get('_target_')!r}")
-    quadrature = OmegaConf.to_container(cfg.quadrature, resolve=True)
     spatial = bool(scene.potential(build(quadrature).build(scene.bounds)).needs_gradient)
     return (scene, int(cfg.model.latent_dim), quadrature["order"], int(cfg.model.width),
             bool(cfg.model.get("clamp", False)), spatial)
@@ -100,7 +101,7 @@ def baselines(study: S.Study, scene: Any, latent: int, peak: float, batch: int, 
     """The same RK4 step for the baselines (their FLOPs: the dense products of one acceleration, × 4)."""
     import torch
 
-    from lnf.baselines import FullOrderModel, LatentMLPDynamics, PODGalerkin
+    from lnf.baselines import FullOrderModel, PODGalerkin
     from lnf.integrators.rk4 import RK4
     from lnf.model import LagrangianNeuralField
     from lnf.quadrature import GaussLegendre

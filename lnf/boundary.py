@@ -56,3 +56,8 @@ class ClampedField(nn.Module):
         if inner.GJ is not None:  # (B, N, A, dim_B, d)
             out.GJ = s_a[..., None, None] * inner.GJ + inner.J[..., None, :] * ds[..., None, :, None]
         return out
+
+
+def is_clamped(model: object) -> bool:
+    """Whether `model`'s field is clamped (``model.clamp=true``: a :class:`ClampedField`)."""
+    return isinstance(getattr(model, "field", None), ClampedField)

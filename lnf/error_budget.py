@@ -9,7 +9,8 @@ The projection error ``projection_rel_l2`` is the floor: the error of the true f
   but the reduced equations pulled back through it (M̃, Ṽ and their derivatives) do not follow the data.
 
 :func:`read_error_budget` turns a metrics dict into these findings, in words; ``lnf.train`` and ``lnf.evaluate``
-log them after the test evaluation. Plain Python; no torch.
+log them after the test evaluation, with a word on stiff dynamics (many automatic substeps) and the clamp. Plain
+Python; no torch.
 """
 from __future__ import annotations
 
@@ -19,17 +20,38 @@ from typing import Mapping
 #: a floor above this is a collapsed embedding; a rollout error above RATIO × the floor is lost in the dynamics
 COLLAPSED = 0.5
 RATIO = 3.0
+#: a rollout that needed this many integration steps per sample (automatic substeps) has stiff dynamics
+STIFF_SUBSTEPS = 8
 
 
-def read_error_budget(metrics: Mapping[str, float], window: str = "all") -> list[str]:
+def stiffness_finding(metrics: Mapping[str, float], clamped: bool = False) -> list[str]:
+    """A finding when the test rollout needed ≥ STIFF_SUBSTEPS automatic substeps (``substeps`` in `metrics`): the
+    pulled-back dynamics are stiff; with the clamp (`clamped`, φ = s(X) ψ) the likely cause is named."""
+    substeps = metrics.get("substeps")
+    if substeps is None or not math.isfinite(float(substeps)) or float(substeps) < STIFF_SUBSTEPS:
+        return []
+    text = (f"the pulled-back dynamics are stiff: the test rollout took {float(substeps):.0f} integration steps per "
+            "sample (its fastest reduced frequency that many times what the step resolves), and costs as much")
+    if clamped:
+        text += (". With model.clamp=true, φ = s(X) ψ: the factor s steepens ∇_X φ next to the clamp, and the "
+                 "elastic energy pulled back through it grows stiff; compare a run with model.clamp=false, or keep "
+                 "∇_X φ in check with model.gradient_weight > 0 where the scene gives field gradients")
+    else:
+        text += ("; a latent direction the data barely excite is the usual cause (compare a smaller "
+                 "model.latent_dim, or model.mass_condition_weight > 0)")
+    return [text]
+
+
+def read_error_budget(metrics: Mapping[str, float], window: str = "all", clamped: bool = False) -> list[str]:
     """Findings (sentences) on `metrics` (a metrics.json dict) in one time window ("all", "in_horizon",
-    "extrapolation"); empty when the floor or the error is missing or not finite, or nothing stands out."""
+    "extrapolation"); empty when the floor or the error is missing or not finite, or nothing stands out. `clamped`:
+    the model's field is clamped (``model.clamp=true``), named as a likely cause of stiff dynamics."""
+    out = stiffness_finding(metrics, clamped)
     floor = metrics.get(f"projection_rel_l2/{window}/median")
     error = metrics.get(f"field_rel_l2/{window}/median")
     if floor is None or error is None or not math.isfinite(float(floor)):
-        return []
+        return out
     floor, error = float(floor), float(error)
-    out = []
     if floor >= COLLAPSED:
         out.append(f"the embedding collapsed: its projection floor projection_rel_l2/{window}/median = {floor:.3g} "
                    "(near 1: φ does not represent the fields even without dynamics). Try another model.w0 (the "
@@ -46,3 +68,4 @@ def read_error_budget(metrics: Mapping[str, float], window: str = "all") -> list
                    "and Ṽ, are not trained to be right): try the integrator's order 4, a larger latent dimension, or "
                    "compare with a baseline (experiments/operator_inference.py)")
     return out
+

@@ -23,6 +23,7 @@ from lnf.dataset import (GROUND_TRUTH_FOLDER, SOURCE_ARRAYS, SPLITS, DatasetConf
                          ensure_dataset, load_split, simulated_ground_truth, stored_generation, verify_dataset)
 from lnf.decoding_table import check_decoding
 from lnf.dynamics_kind import dynamics_kind
+from lnf.boundary import is_clamped
 from lnf.error_budget import read_error_budget
 from lnf.evaluation import evaluate_rollouts, long_horizon_energy
 from lnf.evaluation_cost import EvaluationCost, evaluation_cost, quadrature_size, size_text
@@ -555,7 +556,7 @@ def _evaluate(cfg: DictConfig) -> dict[str, float]:
             controls=split.controls[:k] if own_states and split.controls is not None else None, progress=True))
     metrics["evaluation_seconds"] = time.perf_counter() - start
     write_json_atomic(output_dir / "metrics.json", metrics)
-    for finding in read_error_budget(metrics):
+    for finding in read_error_budget(metrics, clamped=is_clamped(model)):
         log.warning("%s rollout: %s", cfg.split, finding)
     write_json_atomic(output_dir / "run.json", run_metadata(cfg))
     if int(cfg.figures) > 0:

@@ -28,6 +28,8 @@ from lnf.boundary import ClampedField
 from lnf.dynamics_kind import dynamics_kind
 from lnf.quadrature import Quadrature, QuadratureRule
 from lnf.reduced_model import ReducedModel, as_field
+from lnf.baselines.pod import LinearEmbedding
+from lnf.pod_subspace import SubspacePlusField, zero_output
 from lnf.reduction import (best_start, project_velocity, projection_loss, pullback_mass_matrix, reconstruction_loss,
                            reduce, start_grid)
 from lnf.scenes.base import Scene
@@ -178,6 +180,9 @@ class LagrangianNeuralField(ReducedModel):
             points (not in the paper; see :meth:`losses`). Zero at d = 1 and wherever cond M̃ ≤ κ.
         clamp: φ = s(X) ψ with the scene's clamp factor s (:class:`lnf.boundary.ClampedField`), so the field
             meets a clamped boundary exactly; not in the paper (its scenes have none).
+        pod_subspace: φ = m(X) + Φ(X) q̃ + ψ(q̃, X), the mean and d POD modes of the training observations (in a
+            Legendre basis of degree `pod_degree` per axis, fitted by :meth:`fit_subspace` before training) plus the
+            SIREN ψ, zero at initialisation (:mod:`lnf.pod_subspace`); not in the paper.
         quadrature: rule for the integrals of the reduced dynamics (default Gauss–Legendre 8×8).
         dynamics: None (the pulled-back Lagrangian, our model); a ``lnf.tabulated.TabulatedDynamics`` spec
             (the same Lagrangian with M̃ and Ṽ read from a Chebyshev table on the training codes' range widened
@@ -185,7 +190,8 @@ class LagrangianNeuralField(ReducedModel):
             ``lnf.baselines.latent_mlp.LatentMLPDynamics`` (the black-box baseline; it is fitted after the
             field, on the codes of the training trajectories).
 
-    Defaults are those of ``conf/model/lnf.yaml``: w0 = 10 rather than the paper's 30, and λ_v = 0.1 (see docs/choices.md).
+    Defaults are those of ``conf/model/lnf.yaml`` (where w0 = auto: lnf.train searches it on the data; lnf's scenes
+    set 10 or 30 rather than the paper's 30 everywhere) and λ_v = 0.1 (see docs/choices.md).
     """
 
     reduces_through_field = True  # reduce(field=...): the K steps iterate on any φ with a jet (a table of it, too)
@@ -207,6 +213,8 @@ class LagrangianNeuralField(ReducedModel):
         step_size: float = 0.1,
         velocity_weight: float = 0.1,
         clamp: bool = False,
+        pod_subspace: bool = False,
+        pod_degree: int = 12,
         energy_weight: float = 0.0,
         gradient_weight: float = 0.0,
         mass_condition_weight: float = 1.0,
@@ -239,6 +247,10 @@ class LagrangianNeuralField(ReducedModel):
         if clamp:  # φ = s(X) ψ: exactly zero on the scene's clamped boundary
             scene.clamp_factor(torch.zeros(1, scene.body_dim))  # a clear error for scenes without a clamp
             self.field = ClampedField(self.field, scene.clamp_factor)
+        if pod_subspace:  # φ = m + Φ q̃ + ψ: training starts from POD-Galerkin of the same dimension
+            zero_output(self.field)
+            linear = LinearEmbedding(scene.bounds, int(latent_dim), scene.field_dim, pod_degree)
+            self.field = SubspacePlusField(linear, self.field)
         self.reduction_steps = int(reduction_steps)
         if int(reduction_starts) != reduction_starts or reduction_starts < 1:
             raise ValueError(f"model.reduction_starts must be an integer ≥ 1, got {reduction_starts!r}")
@@ -276,8 +288,20 @@ class LagrangianNeuralField(ReducedModel):
         density = self._density(points)
         return self._reduce(points, values, density, steps or self.reduction_steps, field)
 
+    @property
+    def needs_fit(self) -> bool:
+        """Whether a part of φ is fitted in closed form before training (:meth:`fit_subspace`) and is not yet."""
+        return isinstance(self.field, SubspacePlusField) and not bool(self.field.fitted)
+
+    def fit_subspace(self, points: Tensor, values: Tensor) -> dict[str, float]:
+        """The POD part of φ from training observations, points (n, Nobs, dim_B), values (n, T, Nobs, A)."""
+        return self.field.fit(points, values)
+
     def _start(self, points: Tensor, values: Tensor, density: Tensor, field: Any = None) -> Optional[Tensor]:
-        """The K steps' initial codes (B, d): the best of the start grid, or None (q̃^0 = 0) with one start."""
+        """The K steps' initial codes (B, d): the projection onto the POD subspace where φ contains one, else the
+        best of the start grid, or None (q̃^0 = 0) with one start."""
+        if isinstance(self.field, SubspacePlusField):
+            return self.field.start(self.as_model(points), values, density)
         field = self.field if field is None else field
         return best_start(field, points, values, density, self.starts) if len(self.starts) > 1 else None
 

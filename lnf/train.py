@@ -24,7 +24,7 @@ from lnf.baselines.latent_mlp import latent_trajectories
 from lnf.allocator import keep_freed_memory
 from lnf.config_keys import check_known_keys
 from lnf.dynamics_kind import dynamics_kind
-from lnf.model import dropped_settings, target_class
+from lnf.model import build_model, dropped_settings, target_class
 from lnf.run_lock import EVALUATION_RESULTS, run_folder_lock, set_aside
 from lnf.scenes.base import Scene
 from lnf.scenes.check import SceneCheckError, check_scene
@@ -34,7 +34,8 @@ from lnf.training.console import MetricsProgressBar, quiet_console
 from lnf.training.datamodule import SnapshotDataModule
 from lnf.training.loggers import finish_wandb_run
 from lnf.training.module import LNFModule
-from lnf.utils import check_config, print_summary, resolved_config, run_metadata
+from lnf.utils import check_config, is_number, print_summary, resolved_config, run_metadata
+from lnf.w0_search import choose_w0, w0_for_span
 
 log = logging.getLogger("lnf.train")
 
@@ -266,12 +267,17 @@ def _train(cfg: DictConfig) -> dict[str, float]:
     dropped = dropped_settings(model_spec)  # each named in a warning
     model_spec = {k: v for k, v in model_spec.items() if k not in dropped}
     check_run_scene(scene, scene_needs(model_spec, datamodule))  # before any data are generated or steps taken
+    ckpt_file, ckpt = resume_checkpoint(cfg.get("ckpt_path"), output_dir)
+    chosen_settings: dict[str, float] = {}
+    search_w0 = model_spec.get("w0") == "auto" and ckpt is None  # a resumed run keeps the w0 its checkpoint chose
+    if model_spec.get("w0") == "auto":  # the checks below run on a provisional w0, replaced after the search
+        saved = ((ckpt or {}).get("hyper_parameters") or {}).get("model", {}).get("w0")
+        model_spec["w0"] = saved if is_number(saved) else w0_for_span(scene.bounds, 5.0)
     module = LNFModule(scene=scene_spec, model=model_spec, quadrature=_container(cfg.quadrature),
                        optimizer=_container(cfg.optimizer), data=datamodule.describe())
     check_settings(cfg, module)
     evaluation = RolloutEvaluationCallback(integrator=_container(cfg.integrator), output_dir=str(output_dir),
                                            **_container(cfg.evaluation))
-    ckpt_file, ckpt = resume_checkpoint(cfg.get("ckpt_path"), output_dir)
     if ckpt_file is None or ckpt_file.resolve().parent not in ((output_dir / "checkpoints").resolve(),
                                                                output_dir.resolve()):
         set_aside(output_dir, EVALUATION_RESULTS)  # a fresh run: an earlier run's results here are kept, not overwritten
@@ -282,6 +288,19 @@ def _train(cfg: DictConfig) -> dict[str, float]:
     datamodule.prepare_data()  # generates, or verifies every split of a stored file, before the first step
     datamodule.potential_targets = getattr(module.model, "energy_weight", 0.0) > 0  # items carry V for ℓ^E
     datamodule.gradient_targets = getattr(module.model, "gradient_weight", 0.0) > 0  # items carry ∇_X q for ℓ^G
+    if search_w0:  # model.w0=auto: a short search on the data (lnf/w0_search.py), then training starts afresh
+        hparams, observed = dict(module.hparams), datamodule.observations("train")[:2]
+
+        def build(w0: float) -> Any:  # each candidate as training will start it (its POD part fitted, if any)
+            candidate = build_model(hparams["scene"], {**hparams["model"], "w0": w0}, hparams["quadrature"])
+            if getattr(candidate, "needs_fit", False):
+                candidate.fit_subspace(*map(torch.as_tensor, observed))
+            return candidate
+
+        chosen = choose_w0(build, scene.bounds, datamodule, lr=module.optimizer_cfg["lr"], seed=int(cfg.seed)).chosen
+        chosen_settings["w0"] = chosen  # reported in metrics.json beside the results it gave
+        pl.seed_everything(int(cfg.seed), workers=True)
+        module = LNFModule(**{**hparams, "model": {**hparams["model"], "w0": chosen}})
     callbacks = [hydra.utils.instantiate(c) for c in (cfg.get("callbacks") or {}).values() if c is not None]
     for callback in callbacks:  # a resumed checkpoint's state may name only files of the callback's own folder
         if isinstance(callback, ModelCheckpoint):
@@ -297,6 +316,9 @@ def _train(cfg: DictConfig) -> dict[str, float]:
     model = module.model
     fit_info: dict[str, float] = {}
     fit_metrics: dict[str, float] = {}
+    if getattr(model, "needs_fit", False) and ckpt_file is None:  # e.g. the POD part of model.pod_subspace=true
+        points, values, _ = datamodule.observations("train")
+        fit_info.update(model.fit_subspace(torch.as_tensor(points), torch.as_tensor(values)))
     if model.trainable:
         trainer.fit(module, datamodule=datamodule, ckpt_path=str(ckpt_file) if ckpt_file else None,
                     weights_only=True)  # a resumed checkpoint is read as tensors and plain data, never unpickled
@@ -322,6 +344,7 @@ def _train(cfg: DictConfig) -> dict[str, float]:
     metrics["train_seconds"] = train_seconds
     metrics["total_seconds"] = time.perf_counter() - start
     metrics.update(fit_info)
+    metrics.update(chosen_settings)
     metrics.update(budget)
     if hasattr(model, "step_size"):
         metrics["step_size"] = float(model.step_size.detach())

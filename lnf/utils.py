@@ -32,7 +32,7 @@ NUMBER_RULES: dict[str, tuple[str, float, Optional[float], str]] = {
     "model.hyper_width": ("int", 1, None, "neurons per layer of the hypernetwork"),
     "model.hyper_depth": ("int", 0, None, "layers of the hypernetwork"),
     "model.hyper_init_scale": ("≥", 0, None, "the hypernetwork's initial scale"),
-    "model.w0": (">", 0, None, "the SIREN frequency"),
+    "model.w0": (">", 0, None, "the SIREN frequency, or auto: chosen by a short search on the data"),
     "model.reduction_steps": ("int", 1, None, "K, the steps of ρ̃"),
     "model.reduction_starts": ("int", 1, None, "start codes per axis of ρ̃"),
     "model.start_radius": (">", 0, None, "the half-width of ρ̃'s start codes"),
@@ -44,6 +44,7 @@ NUMBER_RULES: dict[str, tuple[str, float, Optional[float], str]] = {
     "model.mass_condition_max": ("≥", 1, None, "κ, the largest condition number of M̃ the mass-conditioning loss allows"),
     "model.resolution": ("int", 1, None, "grid points per axis of the full-order model"),
     "model.degree": ("int", 0, None, "the Legendre degree per axis"),
+    "model.pod_degree": ("int", 0, None, "the Legendre degree per axis of the POD part"),
     "model.ridge": ("≥", 0, None, "the Tikhonov weight"),
     "model.max_condition": (">", 0, None, "the largest condition number of the fits"),
     "optimizer.lr": (">", 0, None, "the learning rate of the field; 0 trains nothing"),
@@ -82,6 +83,10 @@ NUMBER_RULES: dict[str, tuple[str, float, Optional[float], str]] = {
 }
 
 
+#: settings that also take the word ``auto`` (chosen from the body and the data when the run starts)
+AUTO_SETTINGS = frozenset({"model.w0"})
+
+
 def is_number(value: Any) -> bool:
     """An int or float, not a bool (a YAML true is no number)."""
     return isinstance(value, (int, float)) and not isinstance(value, bool)
@@ -95,6 +100,8 @@ def number_problem(key: str, value: Any, rule: Optional[tuple] = None) -> Option
             return f"{key} must be a finite number, got {value!r}"
         return None
     kind, low, high, what = rule
+    if value == "auto" and key in AUTO_SETTINGS:
+        return None
     low_s, high_s = (str(int(x)) if x is not None and float(x).is_integer() else f"{x}" for x in (low, high))
     if kind == "int":
         ok = is_number(value) and math.isfinite(value) and value == int(value) and low <= value \
@@ -104,6 +111,7 @@ def number_problem(key: str, value: Any, rule: Optional[tuple] = None) -> Option
         ok = is_number(value) and math.isfinite(value) and (value > low if kind == ">" else value >= low) \
             and (high is None or value <= high)
         expected = f"a finite number {kind} {low_s}" + (f" and ≤ {high_s}" if high is not None else "")
+    expected += " or auto" if key in AUTO_SETTINGS else ""
     return None if ok else f"{key} must be {expected} ({what}), got {value!r}"
 
 

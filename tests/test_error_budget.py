@@ -28,3 +28,12 @@ def test_nothing_stands_out_near_the_floor_or_without_a_floor():
     assert read_error_budget({"field_rel_l2/all/median": 0.5}) == []
     assert read_error_budget(_m(float("nan"), 0.5)) == []
     assert read_error_budget(_m(0.01, 0.1, "extrapolation"), window="extrapolation")
+
+
+def test_stiff_dynamics_are_named_and_the_clamp_blamed_only_on_a_clamped_field():
+    metrics = {**_m(0.01, 0.012), "substeps": 40.0}
+    (plain,) = read_error_budget(metrics)
+    (clamped,) = read_error_budget(metrics, clamped=True)
+    assert "stiff" in plain and "40 integration steps per sample" in plain and "clamp" not in plain
+    assert "model.clamp=false" in clamped
+    assert read_error_budget({**metrics, "substeps": 2.0}, clamped=True) == []  # a few substeps: nothing to say

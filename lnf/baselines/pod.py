@@ -96,15 +96,28 @@ class LinearEmbedding(nn.Module):
         self.register_buffer("modes", torch.zeros(self.basis.size, out_dim, latent_dim))
         self._cache: dict = {}
 
+    @torch.no_grad()
+    def set_subspace(self, mean: "np.ndarray | Tensor", modes: "np.ndarray | Tensor") -> None:
+        """The mean (n_basis, A) and modes (n_basis, A, d), in the Legendre basis."""
+        self.mean.copy_(torch.as_tensor(mean))
+        self.modes.copy_(torch.as_tensor(modes))
+        self._cache.clear()
+
     def _basis(self, points: Tensor, spatial: bool) -> tuple[Tensor, Optional[Tensor]]:
-        key = (points.data_ptr(), tuple(points.shape), points._version, points.dtype, spatial)
-        if key not in self._cache:
+        try:  # inference tensors have no version counter; a torch.func-wrapped tensor has no data pointer
+            version = None if points.is_inference() else points._version
+            key = (points.data_ptr(), tuple(points.shape), version, points.dtype, spatial)
+        except RuntimeError:
+            key = None
+        if key is None or key not in self._cache:
             pts = points.detach().double().cpu().numpy()
             B = torch.as_tensor(self.basis.values(pts), dtype=self.mean.dtype, device=self.mean.device)
             dB = (torch.as_tensor(self.basis.gradients(pts), dtype=self.mean.dtype, device=self.mean.device)
                   if spatial else None)
             if len(self._cache) > 8:
                 self._cache.clear()
+            if key is None:
+                return B, dB
             self._cache[key] = (B, dB)
         return self._cache[key]
 
@@ -188,52 +201,57 @@ class PODGalerkin(ReducedModel):
 
     @torch.no_grad()
     def fit_to_observations(self, points: Tensor, values: Tensor) -> dict[str, float]:
-        """Modes from training observations: points (n, Nobs, dim_B), values (n, T, Nobs, A).
-
-        Each frame is fitted in the Legendre basis by (ridge) least squares on its own observed points,
-        up to the largest degree p_eff ≤ `degree` whose basis matrix on every trajectory's points has a
-        condition number ≤ `max_condition` (higher degrees would amplify noise, even float32 rounding);
-        the SVD of the fitted coefficients gives the mean and the modes.
-        """
-        pts = np.asarray(points, dtype=np.float64)
-        vals = np.asarray(values, dtype=np.float64)
-        if pts.ndim != 3 or vals.ndim != 4 or vals.shape[0] != pts.shape[0] or vals.shape[2] != pts.shape[1]:
-            raise ValueError(f"POD fit needs points (n, Nobs, dim_B) and values (n, T, Nobs, A), got {pts.shape} and "
-                             f"{vals.shape}")
-        n, T, n_obs, A = vals.shape
-        basis = self.field.basis
-        full = np.stack([basis.values(pts[i]) for i in range(n)])  # (n, Nobs, n_basis)
-        p_eff = -1
-        for p in range(basis.degree, -1, -1):  # the largest degree the observed points determine well
-            cols = np.flatnonzero((basis.multi_indices() <= p).all(-1))
-            if len(cols) <= n_obs and max(np.linalg.cond(full[i][:, cols]) for i in range(n)) <= self.max_condition:
-                p_eff = p
-                break
-        if p_eff < 0:
-            raise ValueError(f"POD fit: {n_obs} observed points per frame are too few to fit any field")
-        keep = np.flatnonzero((basis.multi_indices() <= p_eff).all(-1))
-        coeffs = np.zeros((n, T, basis.size, A))
-        for i in range(n):
-            P = full[i][:, keep]  # (Nobs, nb')
-            gram = P.T @ P
-            gram += self.ridge * np.trace(gram) / len(keep) * np.eye(len(keep))
-            rhs = P.T @ vals[i].transpose(1, 0, 2).reshape(n_obs, T * A)
-            coeffs[i][:, keep] = np.linalg.solve(gram, rhs).reshape(len(keep), T, A).transpose(1, 0, 2)
-        S = coeffs.reshape(n * T, basis.size * A)
-        mean = S.mean(0)
-        _, s, Vt = np.linalg.svd(S - mean, full_matrices=False)
-        k = self.latent_dim
-        if len(s) < k:
-            raise ValueError(f"POD fit: only {len(s)} snapshots for {k} modes")
-        self.field.mean.copy_(torch.as_tensor(mean.reshape(basis.size, A)))
-        self.field.modes.copy_(torch.as_tensor(Vt[:k].reshape(k, basis.size, A).transpose(1, 2, 0).copy()))
-        self.field._cache.clear()
-        self.singular_values.copy_(torch.as_tensor(s[:k]))
+        """Modes from training observations: points (n, Nobs, dim_B), values (n, T, Nobs, A) (:func:`fit_pod`)."""
+        mean, modes, s, info = fit_pod(self.field.basis, self.latent_dim, points, values, self.ridge,
+                                       self.max_condition)
+        self.field.set_subspace(mean, modes)
+        self.singular_values.copy_(torch.as_tensor(s))
         self.fitted.fill_(True)
-        captured = float((s[:k] ** 2).sum() / max((s**2).sum(), 1e-300))
-        log.info("POD: %d modes capture %.6f of the snapshot variance (degree %d of %d per axis, %d snapshots)",
-                 k, captured, p_eff, basis.degree, n * T)
-        return {"pod_energy_captured": captured, "pod_degree": float(p_eff)}
+        return info
 
     def extra_repr(self) -> str:
         return f"{super().extra_repr()}, modes={self.latent_dim}, degree={self.field.basis.degree}"
+
+
+def fit_pod(basis: LegendreBasis, k: int, points: "Tensor | np.ndarray", values: "Tensor | np.ndarray", ridge: float,
+            max_condition: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, float]]:
+    """The mean (n_basis, A), the first `k` L²-orthonormal modes (n_basis, A, k) and their singular values (k,) of
+    training observations: points (n, Nobs, dim_B), values (n, T, Nobs, A); and what they capture.
+
+    Each frame is fitted in the Legendre basis by (ridge, weight `ridge` relative to the mean diagonal of PᵀP) least
+    squares on its own observed points, up to the largest degree p_eff ≤ the basis's whose basis matrix on every
+    trajectory's points has a condition number ≤ `max_condition` (higher degrees would amplify noise, even float32
+    rounding); the SVD of the fitted coefficients gives the mean and the modes."""
+    pts = np.asarray(points, dtype=np.float64)
+    vals = np.asarray(values, dtype=np.float64)
+    if pts.ndim != 3 or vals.ndim != 4 or vals.shape[0] != pts.shape[0] or vals.shape[2] != pts.shape[1]:
+        raise ValueError(f"POD fit needs points (n, Nobs, dim_B) and values (n, T, Nobs, A), got {pts.shape} and "
+                         f"{vals.shape}")
+    n, T, n_obs, A = vals.shape
+    full = np.stack([basis.values(pts[i]) for i in range(n)])  # (n, Nobs, n_basis)
+    p_eff = -1
+    for p in range(basis.degree, -1, -1):  # the largest degree the observed points determine well
+        cols = np.flatnonzero((basis.multi_indices() <= p).all(-1))
+        if len(cols) <= n_obs and max(np.linalg.cond(full[i][:, cols]) for i in range(n)) <= max_condition:
+            p_eff = p
+            break
+    if p_eff < 0:
+        raise ValueError(f"POD fit: {n_obs} observed points per frame are too few to fit any field")
+    keep = np.flatnonzero((basis.multi_indices() <= p_eff).all(-1))
+    coeffs = np.zeros((n, T, basis.size, A))
+    for i in range(n):
+        P = full[i][:, keep]  # (Nobs, nb')
+        gram = P.T @ P
+        gram += ridge * np.trace(gram) / len(keep) * np.eye(len(keep))
+        rhs = P.T @ vals[i].transpose(1, 0, 2).reshape(n_obs, T * A)
+        coeffs[i][:, keep] = np.linalg.solve(gram, rhs).reshape(len(keep), T, A).transpose(1, 0, 2)
+    S = coeffs.reshape(n * T, basis.size * A)
+    mean = S.mean(0)
+    _, s, Vt = np.linalg.svd(S - mean, full_matrices=False)
+    if len(s) < k:
+        raise ValueError(f"POD fit: only {len(s)} snapshots for {k} modes")
+    captured = float((s[:k] ** 2).sum() / max((s**2).sum(), 1e-300))
+    log.info("POD: %d modes capture %.6f of the snapshot variance (degree %d of %d per axis, %d snapshots)",
+             k, captured, p_eff, basis.degree, n * T)
+    modes = Vt[:k].reshape(k, basis.size, A).transpose(1, 2, 0).copy()
+    return mean.reshape(basis.size, A), modes, s[:k], {"pod_energy_captured": captured, "pod_degree": float(p_eff)}

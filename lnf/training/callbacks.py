@@ -12,6 +12,7 @@ import numpy as np
 import torch
 
 from lnf.decoding_table import check_decoding
+from lnf.boundary import is_clamped
 from lnf.error_budget import read_error_budget
 from lnf.evaluation import RolloutEvaluation, evaluate_rollouts, long_horizon_energy, reduction_subset
 from lnf.integrators import Integrator, get_integrator
@@ -213,7 +214,7 @@ class RolloutEvaluationCallback(pl.Callback):
                     controls=None if split.controls is None else split.controls[:n]))
         metrics["evaluation_seconds"] = time.perf_counter() - start
         self.test_metrics = metrics
-        for finding in read_error_budget(metrics):
+        for finding in read_error_budget(metrics, clamped=is_clamped(model)):
             log.warning("test rollout: %s", finding)
         for key, value in metrics.items():  # equal on every rank (each evaluates the whole split)
             pl_module.log(f"test/{key}", float(value), sync_dist=True)

@@ -1,0 +1,81 @@
+"""An embedding that contains the POD subspace: φ(q̃, X) = m(X) + Φ(X) q̃ + ψ(q̃, X) (``model.pod_subspace=true``).
+
+m and Φ are the mean and first d POD modes of the training observations (:func:`lnf.baselines.pod.fit_pod`, fixed
+once fitted), each mode scaled by the spread of its coefficients so that the training codes have unit variance;
+ψ is the SIREN (clamped where the model is), its output layer zero at initialisation. So training starts from the
+POD-Galerkin model of the same dimension, whose pulled-back dynamics are the intrusive linear ROM's, and the SIREN
+learns the nonlinear correction: the linear basis plus a learned curved part of quadratic-manifold reduced models.
+The reduction ρ̃ starts its K steps from the least-squares projection onto the POD modes.
+
+The jet is the sum of the two: J = Φ + J_ψ, H = H_ψ, G = ∇m + ∇Φ q̃ + G_ψ, GJ = ∇Φ + GJ_ψ.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+from lnf.baselines.pod import LinearEmbedding, fit_pod
+from lnf.reduction import project_velocity
+from lnf.siren import FieldJet
+
+
+class SubspacePlusField(nn.Module):
+    """φ = linear(q̃, X) + residual(q̃, X): a :class:`LinearEmbedding` (the POD subspace) plus a field with the
+    :class:`lnf.siren.ModulatedSiren` call and ``jet`` signature."""
+
+    def __init__(self, linear: LinearEmbedding, residual: nn.Module) -> None:
+        super().__init__()
+        self.linear, self.residual = linear, residual
+        self.register_buffer("fitted", torch.tensor(False))
+
+    @property
+    def latent_dim(self) -> int:
+        return self.linear.latent_dim
+
+    @property
+    def depth(self) -> int:
+        return self.residual.depth
+
+    def forward(self, codes: Tensor, points: Tensor) -> Tensor:
+        """φ(q̃, X): codes (B, d), points (N, dim_B) or (B, N, dim_B) → values (B, N, dim_A)."""
+        return self.linear(codes, points) + self.residual(codes, points)
+
+    def jet(self, codes: Tensor, points: Tensor, order: int = 1, spatial: bool = False) -> FieldJet:
+        """φ and its derivatives (shapes as :meth:`lnf.siren.ModulatedSiren.jet`)."""
+        a = self.linear.jet(codes, points, order=min(order, 1), spatial=spatial)
+        b = self.residual.jet(codes, points, order=order, spatial=spatial)
+        out = FieldJet(value=a.value + b.value)
+        out.J = None if b.J is None else a.J + b.J
+        out.H = b.H  # the linear part has none
+        out.G = None if b.G is None else a.G + b.G
+        out.GJ = None if b.GJ is None else a.GJ + b.GJ
+        return out
+
+    def start(self, points: Tensor, values: Tensor, density: Tensor) -> Tensor:
+        """The least-squares codes of `values` (B, N, A) on the POD subspace at `points`, weighted by ω0 (B, d)."""
+        zero = values.new_zeros(values.shape[0], self.latent_dim)
+        jet = self.linear.jet(zero, points, order=1)
+        weights = density.expand(jet.value.shape[:2]) / points.shape[-2]
+        return project_velocity(jet.J, weights, values - jet.value)
+
+    @torch.no_grad()
+    def fit(self, points: "Tensor | np.ndarray", values: "Tensor | np.ndarray", ridge: float = 1e-12,
+            max_condition: float = 1e3) -> dict[str, float]:
+        """m and Φ from training observations: points (n, Nobs, dim_B), values (n, T, Nobs, A); each mode scaled by
+        its coefficients' standard deviation over the n·T snapshots (unit-variance codes)."""
+        n, T = np.shape(values)[:2]
+        mean, modes, s, info = fit_pod(self.linear.basis, self.latent_dim, points, values, ridge, max_condition)
+        self.linear.set_subspace(mean, modes * (s / math.sqrt(n * T))[None, None, :])
+        self.fitted.fill_(True)
+        return info
+
+
+def zero_output(field: nn.Module) -> None:
+    """Zero the output layer of a SIREN (or of the SIREN a :class:`lnf.boundary.ClampedField` wraps): ψ = 0."""
+    inner = getattr(field, "field", field)
+    with torch.no_grad():
+        inner.out.weight.zero_()
+        inner.out.bias.zero_()
