@@ -42,6 +42,14 @@ def test_the_search_keeps_the_best_score_and_leaves_out_a_diverging_candidate():
         search_w0(_Quadratic, [3.0], lambda: [_Batch()], lambda m: 0.0, steps=5)
 
 
+def test_near_ties_go_to_the_smaller_w0():
+    errors = {5.0: 0.7458, 10.0: 0.7039, 20.0: 0.7003, 40.0: 0.7232}  # the cantilever after 100 steps
+    outcome = search_w0(_Quadratic, list(errors), lambda: [_Batch()], lambda m: errors[m.w0], steps=1)
+    assert outcome.chosen == 10.0  # 0.5 % behind 20: tied; 5 is 6.5 % behind: not
+    errors = {5.0: 1.004, 10.0: 0.1657, 20.0: 0.0833}  # the pendulum: 20 halves 10's error
+    assert search_w0(_Quadratic, list(errors), lambda: [_Batch()], lambda m: errors[m.w0], steps=1).chosen == 20.0
+
+
 @pytest.mark.slow
 def test_a_run_with_w0_auto_chooses_a_candidate_and_stores_it(tmp_path):
     from lnf import load
