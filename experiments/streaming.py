@@ -130,7 +130,8 @@ def child(args: argparse.Namespace) -> None:
     from omegaconf import OmegaConf
 
     conf = lambda name: OmegaConf.to_container(OmegaConf.load(ROOT / "conf" / f"{name}.yaml"))  # noqa: E731
-    module = LNFModule(scene={"_target_": "lnf.scenes.LiftedPendulum"}, model=conf("model/lnf"),
+    model = {**conf("model/lnf"), **conf("experiment/pendulum").get("model", {})}  # the pendulum's w0, not auto
+    module = LNFModule(scene={"_target_": "lnf.scenes.LiftedPendulum"}, model=model,
                        quadrature=conf("quadrature/gauss_legendre"), optimizer=conf("optimizer/adam"))
     clock = Clock()
     trainer = pl.Trainer(accelerator="cpu", devices=1, max_steps=args.warmup + args.steps, limit_val_batches=0,

@@ -223,6 +223,10 @@ class LagrangianNeuralField(ReducedModel):
         dynamics: Optional[dict[str, Any]] = None,
     ) -> None:
         super().__init__(scene, quadrature)
+        if isinstance(w0, str):
+            raise ValueError(f"model.w0={w0!r}: LagrangianNeuralField takes a number; w0=auto is resolved by "
+                             "`python -m lnf.train` (a short search on the data, lnf/w0_search.py) before it builds "
+                             "the model, so give the number when building it yourself")
         if int(reduction_steps) != reduction_steps or reduction_steps < 1:
             raise ValueError(f"model.reduction_steps (K) must be an integer ≥ 1, got {reduction_steps!r}")
         if not step_size > 0:

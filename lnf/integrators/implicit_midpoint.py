@@ -75,7 +75,7 @@ class ImplicitMidpoint(FixedStepIntegrator):
 
         Fixed-point iteration first (cheap, converges when h is small against the fastest time scale);
         rows it leaves unconverged after `max_iter` go to Newton's method (if `newton`), whose Jacobian comes
-        from 2d forward-mode products through the dynamics (exact, no finite differences).
+        from central differences of the dynamics (4d evaluations, relative error about eps^(2/3)).
         """
         tol = max(self.tol, 16 * torch.finfo(q.dtype).eps) * (1.0 + q.abs().amax(-1) + p.abs().amax(-1))
         guess = (rq, rp)  # Newton restarts from the predictor, not from a fixed-point iterate that ran away
@@ -106,8 +106,6 @@ class ImplicitMidpoint(FixedStepIntegrator):
         """Newton's method on r = f(z₀ + h r / 2) from the guess (rq, rp) for the rows `rows` (B,).
 
         Returns the rates (`fallback` in the other rows) and the rows still failing."""
-        from torch.func import jvp
-
         idx = rows.nonzero().flatten()
         d = q.shape[-1]
         q0, p0 = q[idx], p[idx]
@@ -122,14 +120,16 @@ class ImplicitMidpoint(FixedStepIntegrator):
             return torch.cat([vm, force], -1)
 
         eye = torch.eye(2 * d, dtype=q.dtype, device=q.device)
+        eps = torch.finfo(q.dtype).eps ** (1.0 / 3.0)  # central differences: truncation and rounding balanced
         err = torch.full((len(idx),), float("inf"), dtype=q.dtype, device=q.device)
         try:
             for _ in range(self.newton_iter):
-                columns = []
-                for k in range(2 * d):
-                    value, column = jvp(rates, (r,), (eye[k].expand_as(r),))
-                    columns.append(column)
-                jac = torch.stack(columns, -1)  # ∂f/∂r (n, 2d, 2d)
+                value = rates(r)
+                step = eps * (1.0 + r.abs().amax(-1, keepdim=True))  # (n, 1)
+                # ∂f/∂r (n, 2d, 2d) by central differences: 4d evaluations through torch's own kernels; forward-mode
+                # AD (torch.func.jvp) went through Python decompositions, 20x slower on a d = 2 elastic pullback
+                jac = torch.stack([(rates(r + step * eye[k]) - rates(r - step * eye[k])) / (2 * step)
+                                   for k in range(2 * d)], -1)
                 delta = torch.linalg.solve(eye - jac, value - r)
                 r = r + delta
                 err = delta.abs().amax(-1) * abs(h)
