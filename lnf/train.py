@@ -23,6 +23,7 @@ from lnf.model import build_model, dropped_settings
 from lnf.run_lock import EVALUATION_RESULTS, run_folder_lock, set_aside
 from lnf.training.callbacks import RolloutEvaluationCallback, write_json_atomic
 from lnf.training.console import quiet_console
+from lnf.training.signals import ended_by_sigterm
 from lnf.training.run_checks import (build_scene, check_resumed_scene, check_resumed_settings, check_run_scene,
                                      check_settings, scene_needs)
 from lnf.training.run_report import (budget_sentence, build_loggers, fit_latent_dynamics, progress_bar, run_record,
@@ -44,7 +45,7 @@ def _container(node: Any) -> Any:
 def train(cfg: DictConfig) -> dict[str, float]:
     """Generate data if needed, train, test; returns the test metrics (also written to metrics.json). A second run
     in the same output folder while this one runs is refused (:mod:`lnf.run_lock`)."""
-    with run_folder_lock(Path(cfg.paths.output_dir), "python -m lnf.train"):
+    with run_folder_lock(Path(cfg.paths.output_dir), "python -m lnf.train"), ended_by_sigterm():
         try:
             return _train(cfg)
         finally:

@@ -268,3 +268,62 @@ def test_no_samples_after_the_training_horizon_is_refused_before_any_data(tmp_pa
     with pytest.raises(ValueError, match=r"data\.train_times=20 must be below data\.n_times=20"):
         train(_cfg(tmp_path, "data.train_times=20"))
     assert not (tmp_path / "data").exists()
+
+
+
+_SIGTERM_IN_TEST_PHASE = """
+import os, signal, sys, time
+import torch, lightning.pytorch as pl
+from lnf.training.signals import ended_by_sigterm
+
+class Module(pl.LightningModule):
+    def __init__(self):
+        super().__init__()
+        self.layer = torch.nn.Linear(1, 1)
+
+    def test_step(self, batch, index):
+        return None
+
+class SlowRollouts(pl.Callback):  # as lnf's evaluation callback: the test rollouts run after the last batch
+    def on_test_epoch_end(self, trainer, module):
+        os.kill(os.getpid(), signal.SIGTERM)
+        start = time.monotonic()
+        while time.monotonic() - start < 30:
+            sum(range(1000))
+        print("the rollouts ran to their end", flush=True)
+
+trainer = pl.Trainer(logger=False, enable_progress_bar=False, enable_model_summary=False, callbacks=[SlowRollouts()])
+data = torch.utils.data.DataLoader(torch.zeros(2, 1), batch_size=1)
+with ended_by_sigterm():
+    trainer.test(Module(), data, verbose=False)
+"""
+
+
+def test_sigterm_stops_a_run_in_its_test_rollouts():
+    """Lightning's SIGTERM handler only sets a flag its loops read between batches: in the test rollouts (after the
+    last batch) a `kill` went unheeded for as long as they took. Under lnf.train's ended_by_sigterm it stops."""
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k != "SLURM_JOB_ID"}
+    proc = subprocess.run([sys.executable, "-c", _SIGTERM_IN_TEST_PHASE], capture_output=True, text=True,
+                          timeout=120, env=env)
+    assert proc.returncode == 143, proc.stdout[-2000:] + proc.stderr[-2000:]
+    assert "the rollouts ran to their end" not in proc.stdout
+
+
+def test_sigterm_handling_is_lightnings_under_slurm_and_restored_after_the_run():
+    import signal
+
+    from lnf.training.signals import ended_by_sigterm
+
+    before = signal.getsignal(signal.SIGTERM)
+    with ended_by_sigterm():
+        assert signal.getsignal(signal.SIGTERM) is not before
+    assert signal.getsignal(signal.SIGTERM) is before
+    os.environ["SLURM_JOB_ID"] = "1"
+    try:
+        with ended_by_sigterm():
+            assert signal.getsignal(signal.SIGTERM) is before  # SLURM's auto-requeue keeps the signal
+    finally:
+        del os.environ["SLURM_JOB_ID"]
