@@ -13,7 +13,7 @@ from typing import Any, Optional
 import hydra
 import lightning.pytorch as pl
 import torch
-from lightning.pytorch.callbacks import ModelCheckpoint
+from lightning.pytorch.callbacks import LearningRateMonitor, ModelCheckpoint
 from omegaconf import DictConfig, OmegaConf
 
 from lnf.allocator import keep_freed_memory
@@ -107,14 +107,17 @@ def _train(cfg: DictConfig) -> dict[str, float]:
         chosen_settings["w0"] = chosen  # reported in metrics.json beside the results it gave
         pl.seed_everything(int(cfg.seed), workers=True)
         module = LNFModule(**{**hparams, "model": {**hparams["model"], "w0": chosen}})
+    loggers = build_loggers(cfg, output_dir, resume=ckpt_file is not None)
     callbacks = [hydra.utils.instantiate(c) for c in (cfg.get("callbacks") or {}).values() if c is not None]
+    if not loggers:  # logger=none: a learning-rate monitor would refuse to start (it has nowhere to log)
+        callbacks = [c for c in callbacks if not isinstance(c, LearningRateMonitor)]
     for callback in callbacks:  # a resumed checkpoint's state may name only files of the callback's own folder
         if isinstance(callback, ModelCheckpoint):
             confine_restored_state(callback)
     callbacks += progress_bar(cfg, callbacks)
     trainer: pl.Trainer = hydra.utils.instantiate(
         cfg.trainer, callbacks=[*callbacks, evaluation], plugins=[AtomicCheckpointIO()],
-        logger=build_loggers(cfg, output_dir, resume=ckpt_file is not None) or False)
+        logger=loggers or False)
     if trainer.is_global_zero:  # provenance first, so that a run killed later still says what it was
         write_json_atomic(output_dir / "run.json", run_record(cfg, output_dir / "run.json"))
     for logger in trainer.loggers:

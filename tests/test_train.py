@@ -116,6 +116,14 @@ def test_load_errors(tmp_path):
         lnf.load(bad)
 
 
+def test_a_run_without_a_logger_trains_and_writes_its_metrics(tmp_path):
+    """logger=none: the learning-rate monitor of the default callbacks (which needs a logger) is left out."""
+    cfg = compose_config("train", ["+experiment=pendulum", "trainer=smoke", "trainer.max_epochs=1", "logger=none",
+                                   "evaluation.figures=0", *TINY], tmp_path)
+    train(cfg)
+    assert (Path(cfg.paths.output_dir) / "metrics.json").is_file()
+
+
 @pytest.mark.parametrize("override,match", [("model.latent_dim=0", "latent_dim"), ("model.reduction_steps=0", "reduction_steps")])
 def test_bad_model_config_is_a_clear_error(override, match, tmp_path):
     cfg = compose_config("train", ["+experiment=pendulum", "trainer=smoke", "logger=none", *TINY, override], tmp_path)
