@@ -18,7 +18,6 @@ import torch
 from torch import Tensor, nn
 
 from lnf.baselines.pod import LinearEmbedding, fit_pod
-from lnf.reduction import project_velocity
 from lnf.siren import FieldJet
 
 
@@ -56,10 +55,7 @@ class SubspacePlusField(nn.Module):
 
     def start(self, points: Tensor, values: Tensor, density: Tensor) -> Tensor:
         """The least-squares codes of `values` (B, N, A) on the POD subspace at `points`, weighted by ω0 (B, d)."""
-        zero = values.new_zeros(values.shape[0], self.latent_dim)
-        jet = self.linear.jet(zero, points, order=1)
-        weights = density.expand(jet.value.shape[:2]) / points.shape[-2]
-        return project_velocity(jet.J, weights, values - jet.value)
+        return self.linear.project(points, values, density)
 
     @torch.no_grad()
     def fit(self, points: "Tensor | np.ndarray", values: "Tensor | np.ndarray", ridge: float = 1e-12,

@@ -23,6 +23,8 @@ from typing import Callable, Iterable, Sequence
 import numpy as np
 import torch
 
+from lnf import metrics as M
+
 log = logging.getLogger(__name__)
 
 #: phases (rad) the first layer's fastest initial wave spans over the body's longest side: the candidates
@@ -63,17 +65,17 @@ def projection_error(model: torch.nn.Module, split, train_times: int, snapshots:
     per = max(1, -(-snapshots // n))
     times = np.unique(np.linspace(0, train_times - 1, per).round().astype(int))
     fine = torch.as_tensor(split.fine_points)
+    uniform = np.ones(len(fine))
     errors = []
     with torch.no_grad():
         for i in range(n):
             observed = torch.as_tensor(split.coarse_points[split.masks[i]])
             values = torch.as_tensor(split.coarse_fields[i, times][:, split.masks[i]])
             codes = model.reduce(observed, values)
-            pred = model.decode(codes, fine, outside="ignore").double()
-            true = torch.as_tensor(split.fields[i, times]).double()
-            err = (pred - true).flatten(1).norm(dim=1) / true.flatten(1).norm(dim=1).clamp_min(1e-300)
-            errors.append(err)
-    return float(torch.cat(errors).median())
+            pred = model.decode(codes, fine, outside="ignore").double().numpy()[:, None]  # each snapshot on its own
+            true = np.asarray(split.fields[i, times], dtype=np.float64)[:, None]
+            errors.append(M.field_rel_l2(pred, true, uniform, np.ones(1, bool)))
+    return float(torch.from_numpy(np.concatenate(errors)).median())  # of an even count, the lower middle one
 
 
 def _cycled(batches: Callable[[], Iterable]) -> Iterable:

@@ -103,6 +103,14 @@ class LinearEmbedding(nn.Module):
         self.modes.copy_(torch.as_tensor(modes))
         self._cache.clear()
 
+    def project(self, points: Tensor, values: Tensor, density: Tensor) -> Tensor:
+        """argmin_q̃ Σ_j ω0(X_j) ‖m(X_j) + Φ(X_j) q̃ − q_j‖²: the least-squares codes (B, d) of `values` (B, N, A) at
+        `points`, ω0 = `density` (N,) or (B, N)."""
+        zero = values.new_zeros(values.shape[0], self.latent_dim)
+        jet = self.jet(zero, points, order=1)
+        weights = density.expand(jet.value.shape[:2]) / points.shape[-2]
+        return project_velocity(jet.J, weights, values - jet.value)
+
     def _basis(self, points: Tensor, spatial: bool) -> tuple[Tensor, Optional[Tensor]]:
         try:  # inference tensors have no version counter; a torch.func-wrapped tensor has no data pointer
             version = None if points.is_inference() else points._version
@@ -186,10 +194,7 @@ class PODGalerkin(ReducedModel):
         values = as_field(self.as_model(values))
         points = self.as_model(points)
         self._check_observation(points, values, "values")
-        zero = values.new_zeros(values.shape[0], self.latent_dim)
-        jet = self.field.jet(zero, points, order=1)
-        weights = self._density(points).expand(jet.value.shape[:2]) / points.shape[-2]
-        return project_velocity(jet.J, weights, values - jet.value)
+        return self.field.project(points, values, self._density(points))
 
     def dynamics(self, quadrature=None):
         self._check_fitted()

@@ -54,18 +54,24 @@ def initial_state_cause(dynamics: Dynamics, q0: Tensor, v0: Tensor, rows: list[i
     return None
 
 
+def central_jacobian(f: "Callable[[Tensor], Tensor]", x: Tensor, steps: Tensor) -> Tensor:
+    """∂f/∂x (B, m, n) of a row-wise function f: (B, n) → (B, m) at x (B, n), by central differences with the step
+    steps[:, k] (B, n) along x_k: 2n evaluations of f."""
+    columns = []
+    for k in range(x.shape[-1]):
+        dx = torch.zeros_like(x)
+        dx[:, k] = steps[:, k]
+        columns.append((f(x + dx) - f(x - dx)) / (2 * steps[:, k:k + 1]))
+    return torch.stack(columns, -1)
+
+
 def stiffness_eigenvalues(dynamics: Dynamics, q: Tensor, v: Tensor, t: float = 0.0) -> Tensor:
     """Eigenvalues λ (B, d) complex128 of ∂q̃̈/∂q̃ at (q, v) (B, d) (central differences, 2d evaluations of the
     acceleration); NaN rows where it is not finite. λ ≈ −ω² for an oscillation of frequency ω [rad/s], λ > 0
     for a direction that grows (a concave potential)."""
     q, v = q.detach(), v.detach()
     eps = torch.finfo(q.dtype).eps ** 0.5 * (1.0 + q.abs())
-    columns = []
-    for k in range(q.shape[-1]):
-        dq = torch.zeros_like(q)
-        dq[:, k] = eps[:, k]
-        columns.append((dynamics.acceleration(q + dq, v, t) - dynamics.acceleration(q - dq, v, t)) / (2 * eps[:, k:k + 1]))
-    jac = torch.stack(columns, -1).to(torch.float64)  # (B, d, d)
+    jac = central_jacobian(lambda x: dynamics.acceleration(x, v, t), q, eps).to(torch.float64)  # (B, d, d)
     finite = torch.isfinite(jac).all(-1).all(-1)
     eig = torch.linalg.eigvals(torch.where(finite[:, None, None], jac, torch.zeros_like(jac)))
     return torch.where(finite[:, None], eig, torch.full_like(eig, float("nan")))
