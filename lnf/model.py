@@ -301,6 +301,10 @@ class LagrangianNeuralField(ReducedModel):
         """The POD part of φ from training observations, points (n, Nobs, dim_B), values (n, T, Nobs, A)."""
         return self.field.fit(points, values)
 
+    def share_fit(self, other: "LagrangianNeuralField") -> None:
+        """The POD part of φ as `other` (a model of the same settings) fitted it: one fit for a w0 search."""
+        self.field.take_fit(other.field)
+
     def _start(self, points: Tensor, values: Tensor, density: Tensor, field: Any = None) -> Optional[Tensor]:
         """The K steps' initial codes (B, d): the projection onto the POD subspace where φ contains one, else the
         best of the start grid, or None (q̃^0 = 0) with one start."""

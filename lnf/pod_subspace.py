@@ -68,6 +68,12 @@ class SubspacePlusField(nn.Module):
         self.fitted.fill_(True)
         return info
 
+    @torch.no_grad()
+    def take_fit(self, other: "SubspacePlusField") -> None:
+        """m and Φ as `other` fitted them."""
+        self.linear.set_subspace(other.linear.mean, other.linear.modes)
+        self.fitted.copy_(other.fitted)
+
 
 def zero_output(field: nn.Module) -> None:
     """Zero the output layer of a SIREN (or of the SIREN a :class:`lnf.boundary.ClampedField` wraps): ψ = 0."""

@@ -94,19 +94,25 @@ def _train(cfg: DictConfig) -> dict[str, float]:
     datamodule.prepare_data()  # generates, or verifies every split of a stored file, before the first step
     datamodule.potential_targets = getattr(module.model, "energy_weight", 0.0) > 0  # items carry V for ℓ^E
     datamodule.gradient_targets = getattr(module.model, "gradient_weight", 0.0) > 0  # items carry ∇_X q for ℓ^G
+    fit_info: dict[str, float] = {}
+    if getattr(module.model, "needs_fit", False) and ckpt_file is None:  # e.g. the POD part of model.pod_subspace
+        points, values, _ = datamodule.observations("train")
+        fit_info.update(module.model.fit_subspace(torch.as_tensor(points), torch.as_tensor(values)))
     if search_w0:  # model.w0=auto: a short search on the data (lnf/w0_search.py), then training starts afresh
-        hparams, observed = dict(module.hparams), datamodule.observations("train")[:2]
+        hparams, fitted = dict(module.hparams), module.model
 
-        def build(w0: float) -> Any:  # each candidate as training will start it (its POD part fitted, if any)
+        def build(w0: float) -> Any:  # each candidate as training will start it (with the POD part fitted above)
             candidate = build_model(hparams["scene"], {**hparams["model"], "w0": w0}, hparams["quadrature"])
             if getattr(candidate, "needs_fit", False):
-                candidate.fit_subspace(*map(torch.as_tensor, observed))
+                candidate.share_fit(fitted)
             return candidate
 
         chosen = choose_w0(build, scene.bounds, datamodule, lr=module.optimizer_cfg["lr"], seed=int(cfg.seed)).chosen
         chosen_settings["w0"] = chosen  # reported in metrics.json beside the results it gave
         pl.seed_everything(int(cfg.seed), workers=True)
         module = LNFModule(**{**hparams, "model": {**hparams["model"], "w0": chosen}})
+        if getattr(module.model, "needs_fit", False):
+            module.model.share_fit(fitted)
     loggers = build_loggers(cfg, output_dir, resume=ckpt_file is not None)
     callbacks = [hydra.utils.instantiate(c) for c in (cfg.get("callbacks") or {}).values() if c is not None]
     if not loggers:  # logger=none: a learning-rate monitor would refuse to start (it has nowhere to log)
@@ -123,11 +129,7 @@ def _train(cfg: DictConfig) -> dict[str, float]:
     for logger in trainer.loggers:
         logger.log_hyperparams(resolved_config(cfg))
     model = module.model
-    fit_info: dict[str, float] = {}
     fit_metrics: dict[str, float] = {}
-    if getattr(model, "needs_fit", False) and ckpt_file is None:  # e.g. the POD part of model.pod_subspace=true
-        points, values, _ = datamodule.observations("train")
-        fit_info.update(model.fit_subspace(torch.as_tensor(points), torch.as_tensor(values)))
     if model.trainable:
         trainer.fit(module, datamodule=datamodule, ckpt_path=str(ckpt_file) if ckpt_file else None,
                     weights_only=True)  # a resumed checkpoint is read as tensors and plain data, never unpickled

@@ -71,3 +71,22 @@ def test_a_word_other_than_auto_is_refused_naming_the_key(tmp_path):
     cfg = compose_config("train", ["+experiment=pendulum", "trainer=smoke", "model.w0=fast", *TINY], tmp_path)
     with pytest.raises(Exception, match=r"model\.w0 must be .* or auto"):
         train(cfg)
+
+
+@pytest.mark.slow
+def test_the_search_shares_one_pod_fit_with_its_candidates_and_the_run(tmp_path, caplog):
+    """model.pod_subspace=true with w0=auto: the POD part is fitted once, and every candidate and the trained model
+    start from it."""
+    import logging
+
+    from lnf import load
+    from lnf.train import train
+
+    cfg = compose_config("train", ["+experiment=pendulum", "trainer=smoke", "trainer.max_epochs=1", "logger=csv",
+                                   "model.w0=auto", "model.pod_subspace=true", "model.pod_degree=4",
+                                   "evaluation.figures=0", *TINY], tmp_path)
+    with caplog.at_level(logging.INFO, logger="lnf.pod"):
+        metrics = train(cfg)
+    assert caplog.text.count("modes capture") == 1 and "pod_energy_captured" in metrics
+    model = load(Path(cfg.paths.output_dir) / "checkpoints" / "last.ckpt")
+    assert bool(model.field.fitted) and float(model.field.linear.modes.abs().max()) > 0
