@@ -110,6 +110,31 @@ def test_the_default_midpoint_carries_a_stiff_step_and_stops_wasting_fixed_point
     assert torch.equal(easy[0].q, easy[1].q) and torch.equal(easy[0].v, easy[1].v)
 
 
+def test_newton_reuses_its_jacobian_while_the_iteration_contracts():
+    """A stiff linear spring (h·ω = 20, fixed substeps): every step goes to Newton's method, whose Jacobian is
+    computed once and reused by all later solves (it is constant here), at a few evaluations per solve; the
+    result is the exact midpoint map (a rotation by 2·atan(hω/2) in (q, p/ω))."""
+    omega, dt, steps = 400.0, 0.05, 30
+    calls = []
+
+    class Counted(_SpringHamiltonian):
+        def hamiltonian_derivatives(self, q, p, t=0.0):
+            calls.append(q.shape[0])
+            return super().hamiltonian_derivatives(q, p, t)
+
+    q0 = torch.tensor([[1.0, 0.0]], dtype=torch.float64)
+    v0 = torch.tensor([[0.0, 200.0]], dtype=torch.float64)
+    solver = ImplicitMidpoint(order=2, max_substeps=1)
+    traj = solver.integrate(Counted(omega), q0, v0, dt, steps)
+    assert not traj.diverged.any()
+    assert solver.jacobians == 1 and solver.newton_solves >= steps - 3
+    assert len(calls) / steps < 10  # 3 fixed-point tries and ~2 chord iterations per solve, not 4d per iteration
+    theta = 2 * np.arctan(dt * omega / 2) * np.arange(steps + 1)
+    z0 = q0.numpy()[0] + 1j * v0.numpy()[0] / omega  # q + i p/ω turns by −θ per step
+    exact = z0[None, :] * np.exp(-1j * theta)[:, None]
+    assert np.allclose(traj.q[0].numpy(), exact.real, atol=1e-9)
+
+
 def test_settings_of_another_integrator_are_a_clear_error():
     """+experiment=<scene> sets integrator.order for the midpoint rule; RK4 must say how to drop it."""
     from lnf.integrators import get_integrator

@@ -44,9 +44,11 @@ class ImplicitMidpoint(FixedStepIntegrator):
             self.fractions = [g1, -c * g1, g1]
         self.iterations: list[int] = []  # fixed-point iterations per midpoint solve (diagnostics)
         self.newton = bool(newton)
-        self.newton_iter = 10  # Newton converges quadratically: 10 iterations or the row is diverging
+        self.newton_iter = 20  # Newton converges quadratically, a reused J linearly at rate ≤ 0.1: else diverging
         self.newton_solves = 0  # midpoint solves that needed Newton's method (diagnostics)
+        self.jacobians = 0  # Jacobians ∂f/∂z computed for Newton's method (diagnostics; each costs 4d evaluations)
         self._stiff = False
+        self._jacobian: "Tensor | None" = None  # (B, 2d, 2d): the last J of each row, reused by the next solves
 
     def __repr__(self) -> str:
         return f"ImplicitMidpoint(order={self.order}, substeps={self.substeps}, tol={self.tol:g})"
@@ -57,6 +59,7 @@ class ImplicitMidpoint(FixedStepIntegrator):
                              "so the symplectic implicit midpoint rule does not apply; use integrator=rk4 or dopri5")
         p = dynamics.momentum(q, v)
         self._stiff = False  # set once a step of this rollout needed Newton's method
+        self._jacobian = None
         # the last two entries carry the previous step's rates (q̃̇ₘ, ṗₘ): the predictor of the next solve
         return q, p, v.clone(), torch.zeros_like(p)
 
@@ -105,38 +108,69 @@ class ImplicitMidpoint(FixedStepIntegrator):
                 rows: Tensor, fallback: tuple[Tensor, Tensor]) -> tuple[Tensor, Tensor, Tensor]:
         """Newton's method on r = f(z₀ + h r / 2) from the guess (rq, rp) for the rows `rows` (B,).
 
-        Returns the rates (`fallback` in the other rows) and the rows still failing."""
+        The Jacobian J = ∂f/∂z (2d × 2d per row, from central differences: 4d evaluations) is kept from the last
+        solve of the rollout and reused (a simplified, "chord" Newton: one evaluation per iteration) for as long
+        as the iterates contract fast (each correction at most 0.1 of the last); a row whose iteration slows is
+        given a fresh J at its current iterate. J does not depend on h, so one J serves the substeps and the three sizes of
+        the order-4 composition. Returns the rates (`fallback` in the other rows) and the rows still failing."""
         idx = rows.nonzero().flatten()
         d = q.shape[-1]
-        q0, p0 = q[idx], p[idx]
+        z0 = torch.cat([q[idx], p[idx]], -1)
         controls = getattr(dynamics, "controls", None)
         if controls is not None:
             dynamics.controls = controls[idx]
         start = torch.cat([rq[idx], rp[idx]], -1)
         r = torch.where(torch.isfinite(start), start, torch.zeros_like(start))
 
-        def rates(x: Tensor) -> Tensor:
-            vm, force = dynamics.hamiltonian_derivatives(q0 + 0.5 * h * x[:, :d], p0 + 0.5 * h * x[:, d:], t + 0.5 * h)
+        def rates(z: Tensor) -> Tensor:
+            vm, force = dynamics.hamiltonian_derivatives(z[:, :d], z[:, d:], t + 0.5 * h)
             return torch.cat([vm, force], -1)
 
         eye = torch.eye(2 * d, dtype=q.dtype, device=q.device)
         eps = torch.finfo(q.dtype).eps ** (1.0 / 3.0)  # central differences: truncation and rounding balanced
+        cache = self._jacobian if self._jacobian is not None and self._jacobian.shape[0] == q.shape[0] else None
+        if cache is None:
+            jac = torch.zeros(len(idx), 2 * d, 2 * d, dtype=q.dtype, device=q.device)
+            stale = torch.ones(len(idx), dtype=torch.bool, device=q.device)  # rows whose J is computed now
+        else:
+            jac = cache[idx]
+            stale = ~torch.isfinite(jac).flatten(1).all(-1)
         err = torch.full((len(idx),), float("inf"), dtype=q.dtype, device=q.device)
         try:
             for _ in range(self.newton_iter):
-                value = rates(r)
-                # ∂f/∂r (n, 2d, 2d) by central differences: 4d evaluations through torch's own kernels; forward-mode
-                # AD (torch.func.jvp) went through Python decompositions, 20x slower on a d = 2 elastic pullback
-                jac = central_jacobian(rates, r, (eps * (1.0 + r.abs().amax(-1, keepdim=True))).expand_as(r))
-                delta = torch.linalg.solve(eye - jac, value - r)
+                z = z0 + 0.5 * h * r
+                value = rates(z)
+                if bool(stale.any()):
+                    # ∂f/∂z by central differences through torch's own kernels (forward-mode AD, torch.func.jvp,
+                    # went through Python decompositions, 20x slower on a d = 2 elastic pullback)
+                    rows_j = stale.nonzero().flatten()
+                    zj, rj = z0[rows_j], r[rows_j]
+                    if controls is not None:
+                        dynamics.controls = controls[idx][rows_j]
+                    # steps in r of eps·(1 + |r|), i.e. in z of (h/2)·eps·(1 + |r|): the scale of the step's own
+                    # increments (a step of eps·|z| in z is a secant far too wide in float32); J = (2/h) ∂f/∂r
+                    jac[rows_j] = central_jacobian(lambda x: rates(zj + 0.5 * h * x), rj,
+                                                   (eps * (1.0 + rj.abs().amax(-1, keepdim=True))).expand_as(rj)
+                                                   ) * (2.0 / h)
+                    if controls is not None:
+                        dynamics.controls = controls[idx]
+                    self.jacobians += 1
+                    stale = torch.zeros_like(stale)
+                delta = torch.linalg.solve(eye - 0.5 * h * jac, value - r)
                 r = r + delta
-                err = delta.abs().amax(-1) * abs(h)
-                if bool((err <= tol[idx]).all()) or not bool(torch.isfinite(r).any()):
+                last, err = err, delta.abs().amax(-1) * abs(h)
+                done = err <= tol[idx]
+                if bool(done.all()) or not bool(torch.isfinite(r).any()):
                     break
+                stale = ~done & ~(err <= 0.1 * last)  # J too far from this iterate's: the iteration slowed
         finally:
             if controls is not None:
                 dynamics.controls = controls
         ok = torch.isfinite(r).all(-1) & (err <= tol[idx])
+        if cache is None:
+            cache = torch.full((q.shape[0], 2 * d, 2 * d), float("nan"), dtype=q.dtype, device=q.device)
+        cache[idx] = jac
+        self._jacobian = cache
         rq, rp, still = fallback[0].clone(), fallback[1].clone(), rows.clone()
         rq[idx], rp[idx] = r[:, :d], r[:, d:]
         still[idx] = ~ok
