@@ -137,10 +137,7 @@ def run(study: S.Study, ckpts: dict) -> list[dict]:
 
 
 def plot(study: S.Study, rows: list[dict]) -> Path:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = S.pyplot()
     from matplotlib.lines import Line2D
 
     fig, axes = plt.subplots(1, 3, figsize=(15, 5.2), layout="constrained")

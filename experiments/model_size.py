@@ -35,10 +35,7 @@ DIM_STYLES = [("o", "-"), ("s", "--"), ("^", "-."), ("D", ":"), ("v", (0, (5, 1,
 
 
 def plot(study: S.Study, rows: list[dict], others: list[dict], target: float, chosen: Optional[dict]) -> Path:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = S.pyplot()
 
     fig, (ax, ax2) = plt.subplots(1, 2, figsize=(12, 5.0), layout="constrained", sharey=True)
     pod = sorted((r for r in others if r["method"] in ("pod", "opinf", "opinf_observed")),

@@ -33,18 +33,6 @@ from experiments import studylib as S
 ERR = "field_rel_l2"
 
 
-def compose(study: S.Study) -> Any:
-    """The training config of the study's scene as `python -m lnf.train +experiment=<scene>` composes it (with the
-    studies' tiny data settings under --smoke)."""
-    from hydra import compose as hydra_compose, initialize_config_dir
-
-    overrides = [f"+experiment={study.scene}", *(S.SMOKE_DATA if study.mode == "smoke" else [])]
-    if study.config_dir is not None:
-        overrides.append(f"hydra.searchpath=['file://{study.config_dir}']")
-    with initialize_config_dir(str(S.CONF), version_base=None):
-        return hydra_compose("train", overrides=overrides)
-
-
 def load_data(study: S.Study) -> tuple[Any, Any, dict[str, Any]]:
     """The scene, its dataset's data module (generated or reused as lnf.train does) and its three splits."""
     import hydra
@@ -52,7 +40,7 @@ def load_data(study: S.Study) -> tuple[Any, Any, dict[str, Any]]:
     for key, value in S.job_environment().items():  # LNF_ROOT = the repository, an absolute LNF_DATA_DIR
         if key in ("LNF_ROOT", "LNF_DATA_DIR"):
             os.environ[key] = value
-    cfg = compose(study)
+    cfg = study.composed(S.SMOKE_DATA if study.mode == "smoke" else ())  # with the tiny data settings under --smoke
     scene = study.scene_object()
     datamodule = hydra.utils.instantiate(cfg.data, scene=scene, _convert_="all")
     print(f"[operator_inference] dataset {datamodule.path} (generated if absent)", flush=True)

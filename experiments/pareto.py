@@ -267,10 +267,7 @@ def _suptitle(fig, text: str, study: S.Study) -> None:
 
 
 def plot(study: S.Study, rows: list[dict], simulator: dict | None = None) -> list[Path]:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = S.pyplot()
 
     dim = study.scene_object().body_dim
     train_rows = [r for r in rows if "train_seconds" in r

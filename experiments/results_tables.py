@@ -30,7 +30,8 @@ Commands (from the repository root)::
 
 Files are rewritten atomically (a temporary file in the same folder, then a rename), and only when they change.
 The script needs only the standard library to render and check; ``--collect`` of a Pareto study imports
-``experiments.pareto``.
+``experiments.pareto``. What each table is made from is registered in :mod:`experiments.results_specs`; its
+Markdown text is made by :mod:`experiments.results_markdown`.
 """
 from __future__ import annotations
 
@@ -44,9 +45,12 @@ import re
 import shutil
 import subprocess
 import sys
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Optional
+
+from experiments.results_markdown import (fmt, markdown_table, parse_markdown_tables, provenance_line,
+                                          rerun_command)  # noqa: F401 (rerun_command: the tests' RT.rerun_command)
+from experiments.results_specs import SPECS, Spec, spec_of
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "results"
@@ -54,296 +58,11 @@ MARKDOWN = ["README.md", "docs"]  # files, or folders searched for *.md
 BEGIN = re.compile(r"^(?P<indent>[ \t]*)<!-- results:(?P<name>[A-Za-z0-9_.-]+) -->\s*$")
 END = "<!-- /results:{name} -->"
 FENCE = re.compile(r"^\s*(```|~~~)")
-MACHINE_2CORE = ("the project's CPU machine (Intel Xeon, 2 vCPUs, 24 GiB, no GPU; torch 2.13.0+cpu, "
-                 "2 torch threads)")
 MAX_COPY_BYTES = 4 << 20  # a raw file larger than this is not copied into results/
 
 
 class TableError(RuntimeError):
     """A marker, a source file or a table that cannot be made; the message names the file and the table."""
-
-
-# ---------------------------------------------------------------------------------------------------
-# what each table is made from
-# ---------------------------------------------------------------------------------------------------
-@dataclass(frozen=True)
-class Spec:
-    """Where a table's raw outputs appear and how the table is computed from them.
-
-    kind:
-        ``pareto``: ``pareto.csv`` of a Pareto study, the most accurate point of each method (as the study's own
-        summary chooses it); ``study``: the ``table``-th Markdown table of the study's ``summary.md`` (the study's
-        own reduction of its CSV, which is copied beside it); ``metrics``: rows ``metrics`` (label, key) of a
-        run's ``metrics.json`` (or of the JSON file ``file``, nested keys joined by ``/``: e.g. ``results.json`` of
-        ``experiments/scenes.py``); ``stack``: one row per table of ``parts`` (label, table name), the rows of
-        each one's study CSV where column ``where[0]`` is ``where[1]``, cells ``columns`` (header, key, and
-        optionally a factor the value is multiplied by: seconds → ms); its provenance is that of the parts; ``cells``: a
-        table assembled from the cells of other tables (``results/<name>/cells.json``: a header and rows of text
-        templates, see :func:`fill_cell`), with the provenance of the tables it quotes; ``transcribed``: no raw
-        outputs known, ``table.csv`` only.
-    raw: the folder of the raw outputs, relative to the repository (None: given on the command line, or none).
-    command: the command that makes them.
-    """
-
-    kind: str
-    command: str
-    raw: Optional[str] = None
-    table: int = 0
-    csv: Optional[str] = None
-    metrics: tuple[tuple[str, str], ...] = ()
-    file: str = "metrics.json"
-    parts: tuple[tuple[str, str], ...] = ()
-    columns: tuple[tuple[Any, ...], ...] = ()  # (header, key) or (header, key, factor)
-    where: tuple[str, str] = ("", "")
-
-
-SCENES = ["pendulum", "double_pendulum", "bump", "elastic", "elastic_actuated", "soft_body"]
-
-
-def _study(name: str, scene: str, kind: str = "study", table: int = 0) -> Spec:
-    suffix = "" if scene == "pendulum" else f"-{scene}"
-    flag = "" if scene == "pendulum" else f" --scene {scene}"
-    return Spec(kind=kind, command=f"python -m experiments.{name}{flag}", raw=f"outputs/studies/{name}{suffix}",
-                table=table, csv=f"{name}.csv")
-
-
-PENDULUM_METRICS = (
-    ("`field_rel_l2/all/median`", "field_rel_l2/all/median"),
-    ("`field_rel_l2/in_horizon/median`", "field_rel_l2/in_horizon/median"),
-    ("`field_rel_l2/extrapolation/median` (t ≥ 2.5 s)", "field_rel_l2/extrapolation/median"),
-    ("`field_rel_l2/all/max`", "field_rel_l2/all/max"),
-    ("`projection_rel_l2/all/median` (the embedding's own floor)", "projection_rel_l2/all/median"),
-    ("`energy_rel_err/max` (m g ℓ units)", "energy_rel_err/max"),
-    ("`energy_drift_long/max` (1 000 steps)", "energy_drift_long/max"),
-    ("`vpt/median` [s]", "vpt/median"),
-    ("`rollout_seconds_per_trajectory`", "rollout_seconds_per_trajectory"),
-    ("data and training [s] · whole run [s]", "train_seconds|total_seconds"),
-    ("epochs run (of the budget)", "epochs_run|max_epochs"),
-)
-
-# a scene's default run, in the scene's own energy unit (E_scale)
-SCENE_METRICS = (
-    ("`field_rel_l2/all/median` (the whole 5 s)", "field_rel_l2/all/median"),
-    ("`field_rel_l2/in_horizon/median` · `/max`", "field_rel_l2/in_horizon/median|field_rel_l2/in_horizon/max"),
-    ("`field_rel_l2/extrapolation/median` (after the training horizon)", "field_rel_l2/extrapolation/median"),
-    ("`projection_rel_l2/all/median` (the embedding's own floor)", "projection_rel_l2/all/median"),
-    ("`energy_rel_err/max` (E_scale units)", "energy_rel_err/max"),
-    ("`energy_drift_long/max` (1 000 steps)", "energy_drift_long/max"),
-    ("`vpt/median` [s]", "vpt/median"),
-    ("`rollout_seconds_per_trajectory` · with decoding", "rollout_seconds_per_trajectory|fields_seconds_per_trajectory"),
-    ("data and training [s] · whole run [s]", "train_seconds|total_seconds"),
-    ("epochs run (of the budget)", "epochs_run|max_epochs"),
-)
-
-# experiments/scenes.py's results.json on a body with an expensive reference (speedup) and an added damping (damped)
-FEM_SCENE_MEASUREMENTS = (
-    ("test trajectories · training horizon [s] · FEM state entries (u and v of every node, the load)",
-     "trajectories|horizon_s|fom_state_size"),
-    ("FEM: largest step tried (× its own) · its seconds for all of them", "fom_step_factor|fom_seconds"),
-    ("ours, Chebyshev table: step [s] · seconds · speed-up", "rom_dt|rom_seconds|speedup"),
-    ("ours, exact pullback: seconds · speed-up", "rom_seconds_exact|speedup_exact"),
-    ("ours, table, every stored frame decoded on the evaluation points: points · seconds · speed-up",
-     "decoding_points|rom_seconds_with_decoding|speedup_with_decoding"),
-    ("conservative: `field_rel_l2` in horizon (median · max) · after it", "ours/field_rel_l2/in_horizon/median|"
-     "ours/field_rel_l2/in_horizon/max|ours/field_rel_l2/extrapolation/median"),
-    ("conservative: `energy_drift_long/max` (1 000 steps) · diverged long rollouts",
-     "ours/energy_drift_long/max|ours/diverged_count_long"),
-    ("damped (α [1/s], trained undamped): α · `field_rel_l2` all (median · max) · in horizon · after",
-     "damped/damping_per_second|damped/field_rel_l2/all/median|damped/field_rel_l2/all/max|"
-     "damped/field_rel_l2/in_horizon/median|damped/field_rel_l2/extrapolation/median"),
-    ("damped: dissipated energy, ours / FEM (median) · largest energy error / E_scale · diverged fraction",
-     "damped/dissipated_ratio_ours_over_reference_median|damped/energy_error_max_over_scale|"
-     "damped/diverged_fraction"),
-    ("all measurements [s]", "seconds"),
-)
-
-# python -m experiments.probe_settings --out probe.json: the embedding after a fixed number of steps
-PROBE_METRICS = (
-    ("projection error, 32×32 (training grid)", "projection_rel_l2_32"),
-    ("projection error, 64×64 (test grid)", "projection_rel_l2_64"),
-    ("projection error, 4 096 points uniform over the body", "projection_rel_l2_uniform"),
-    ("rollout error, 64×64: GL32 · GL8 in the dynamics", "rollout_rel_l2_64_GL32|rollout_rel_l2_64_GL8"),
-    ("boundary ring's share of the squared 64×64 error", "ring_share_of_sq_error"),
-    ("ε = ‖J‖²/⟨J, u⟩² − 1, interior codes: min · max", "eps_interior_min|eps_interior_max"),
-    ("training steps · seconds", "steps|train_seconds"),
-)
-
-SPECS: dict[str, Spec] = {
-    **{f"pareto-{s}": _study("pareto", s, "pareto") for s in SCENES},
-    **{f"stability-{s}": _study("stability", s) for s in SCENES},
-    "stability-pendulum-resolution": _study("stability", "pendulum", table=1),
-    "stability-soft_body-resolution": _study("stability", "soft_body", table=1),
-    **{f"sparse_noisy-{s}": _study("sparse_noisy", s) for s in SCENES},
-    "model_size-pendulum": _study("model_size", "pendulum"),
-    "model_size-elastic": _study("model_size", "elastic"),
-    "model_size-elastic_actuated": _study("model_size", "elastic_actuated"),
-    "model_size-soft_body": _study("model_size", "soft_body"),
-    # the same studies' second table: the baselines (POD-Galerkin, Operator Inference, the black box) at the question
-    **{f"model_size-{s}-baselines": _study("model_size", s, table=1) for s in ("elastic", "elastic_actuated",
-                                                                               "soft_body")},
-    **{f"seeds-{s}": _study("seeds", s) for s in SCENES},
-    "cost_scaling-pendulum": _study("cost_scaling", "pendulum"),
-    **{f"roofline-{s}": _study("roofline", s) for s in SCENES},
-    "roofline-defaults": Spec("stack", "python -m experiments.roofline --scene <scene>",
-                              parts=tuple((s.replace("_", " "), f"roofline-{s}") for s in SCENES),
-                              where=("default", "True"), columns=(
-        ("SIREN width", "width"), ("trajectories", "batch"), ("quadrature points", "points"),
-        ("FLOPs per step", "flops"), ("ms per RK4 step", "seconds", 1e3), ("× the bound", "ratio"),
-        ("matmul peak, same run [GFLOP/s]", "matmul_peak_gflops"))),
-    "summary": Spec("cells", "python -m experiments.results_tables"),
-    "pendulum_default": Spec("metrics", "python -m lnf.train +experiment=pendulum", metrics=PENDULUM_METRICS),
-    "pendulum_acceptance": Spec("metrics", "python -m experiments.pendulum_acceptance", file="acceptance.json", metrics=(
-        ("wall-clock of the train command [s] (data generation, training, test evaluation; target ≤ 1 200)",
-         "train_wall_seconds"),
-        ("`field_rel_l2/all/median` (target ≤ 0.02)", "field_rel_l2/all/median"),
-        ("`field_rel_l2/extrapolation/median`, t ≥ 2.5 s (target ≤ 0.03)", "field_rel_l2/extrapolation/median"),
-        ("`field_rel_l2/in_horizon/median` · `field_rel_l2/all/max`", "field_rel_l2/in_horizon/median|field_rel_l2/all/max"),
-        ("`projection_rel_l2/all/median` (the embedding's own floor)", "projection_rel_l2/all/median"),
-        ("`energy_rel_err/max` (m g ℓ units, 100-sample rollout; target ≤ 0.02)", "energy_rel_err/max"),
-        ("`energy_drift_long/max` over 10 000 steps of 4 test trajectories (dt = 0.05 s, 200× the training horizon; "
-         "target ≤ 1e-3)", "energy_drift_long/max"),
-        ("`vpt/median` [s]", "vpt/median"),
-        ("`rollout_seconds_per_trajectory` (100 steps, 16 trajectories at once)", "rollout_seconds_per_trajectory"),
-        ("epochs run (of the budget)", "epochs_run|max_epochs"),
-        ("every target met", "passed"),
-    )),
-    "soft_body_default": Spec("metrics", "python -m lnf.train +experiment=soft_body", metrics=SCENE_METRICS),
-    "soft_body_scenes": Spec("metrics", "python -m experiments.scenes --scene soft_body --measure speedup shape damped",
-                             metrics=FEM_SCENE_MEASUREMENTS, file="results.json"),
-    **{f"pendulum_grid-{g}": Spec("metrics", f"python -m lnf.train +experiment=pendulum data.coarse_grid={g.split('-')[0]}",
-                                  metrics=PENDULUM_METRICS) for g in ("centres", "vertices", "vertices-lr1e-3")},
-    "pendulum_grid": Spec("cells", "python -m experiments.results_tables"),
-    **{f"probe-w0-{w}": Spec("metrics", f"python -m experiments.probe_settings --steps 650 --hyper-depth 0 "
-                                        f"--velocity-weight 0 --w0 {w} --out <folder>/probe.json",
-                             metrics=PROBE_METRICS, file="probe.json") for w in (10, 30)},
-    "probe-w0": Spec("cells", "python -m experiments.results_tables"),
-    "bench_defaults-pendulum-vertices": Spec("study", "python -m experiments.bench_defaults --override data.coarse_grid=vertices "
-                                         "--out outputs/studies/bench_defaults-vertices",
-                                         raw="outputs/studies/bench_defaults-vertices", csv="bench_defaults.json"),
-    "pendulum_lr1e-3": Spec("metrics", "python -m lnf.train +experiment=pendulum optimizer.lr=1e-3",
-                            metrics=PENDULUM_METRICS),
-    "evaluate_readme": Spec("metrics", "python -m lnf.evaluate ckpt_path=<the pendulum_lr1e-3 run>/checkpoints/last.ckpt "
-                            "integrator=rk4 integrator.substeps=5 dt=0.05 horizon=20 grid.kind=uniform "
-                            "grid.resolution=128 long_steps=10000 dynamics=tabulated", metrics=(
-        ("evaluation points", "evaluation_points"),
-        ("decoding table: nodes · error (of the largest field)", "decoding_table_nodes|decoding_table_error"),
-        ("`field_rel_l2/all/median` · `/extrapolation/median`", "field_rel_l2/all/median|field_rel_l2/extrapolation/median"),
-        ("rollout · rollout + decoding per trajectory [s]", "rollout_seconds_per_trajectory|fields_seconds_per_trajectory"),
-        ("long-horizon check: steps · seconds", "energy_drift_long/steps|energy_drift_long/seconds"),
-        ("`energy_drift_long/max`", "energy_drift_long/max"),
-        ("rollouts, decoding and checks [s] (`evaluation_seconds`: without start-up, ground truth and figures)",
-         "evaluation_seconds"),
-    )),
-    "elastic-oracle": Spec("study", "python -m experiments.elastic_diagnostics --oracle --degree 1 2 3",
-                           raw="outputs/elastic_diagnostics/oracle", csv="oracle.json"),
-    "elastic-release": Spec("study", "python -m experiments.elastic_diagnostics --content",
-                            raw="outputs/elastic_diagnostics/content", csv="content.json"),
-    "streaming": Spec("study", "python -m experiments.streaming", raw="outputs/streaming", csv="results.json"),
-    "bench_training": Spec("study", "python -m experiments.bench_training --baseline <commit>",
-                           raw="outputs/studies/bench_training", csv="bench_training.json"),
-    "bench_training-tabulated": Spec("study", "python -m experiments.bench_training --baseline <commit>",
-                                     raw="outputs/studies/bench_training", csv="bench_training.json", table=1),
-    # the worked example of docs/own_system.md, a scene kept outside the package
-    **{f"{name}-vibrating_string": Spec(kind, f"PYTHONPATH=examples python -m experiments.{name} --config-dir examples/conf "
-                                              f"--scene vibrating_string", raw=f"outputs/studies/{name}-vibrating_string",
-                                        csv=f"{name}.csv")
-       for name, kind in [("pareto", "pareto"), ("stability", "study")]},
-}
-
-
-def spec_of(name: str, provenance: dict[str, Any]) -> Spec:
-    """The registered spec of a table, or a transcribed one made from its provenance."""
-    if name in SPECS:
-        return SPECS[name]
-    return Spec("transcribed", provenance.get("command", ""))
-
-
-# ---------------------------------------------------------------------------------------------------
-# formatting
-# ---------------------------------------------------------------------------------------------------
-def fmt(value: Any, digits: int = 3) -> str:
-    """A number as the studies print it (3 significant digits, "diverged" for inf/NaN); text as it is."""
-    if value is None or value == "":
-        return ""
-    if isinstance(value, bool):
-        return str(value).lower()
-    try:
-        x = float(value)
-    except (TypeError, ValueError):
-        return str(value)
-    if x != x or x in (float("inf"), float("-inf")):
-        return "diverged"
-    if isinstance(value, int) or (isinstance(value, str) and re.fullmatch(r"-?\d+", value.strip())):
-        return str(int(x))
-    if 1e3 <= abs(x) < 1e6:  # 1 052, not 1.05e+03
-        return f"{x:,.0f}".replace(",", " ")
-    return f"{x:.{digits}g}"
-
-
-def markdown_table(header: list[str], rows: list[list[str]]) -> list[str]:
-    def line(cells: list[str]) -> str:
-        return "| " + " | ".join(c.replace("|", "\\|").replace("\n", " ") for c in cells) + " |"
-
-    return [line(header), "|" + "---|" * len(header), *(line(r + [""] * (len(header) - len(r))) for r in rows)]
-
-
-def parse_markdown_tables(text: str) -> list[tuple[list[str], list[list[str]]]]:
-    """Every pipe table of a Markdown text: (header, rows), cells stripped."""
-    tables, block = [], []
-
-    def cells(line: str) -> list[str]:
-        inner = line.strip()[1:-1] if line.strip().endswith("|") else line.strip()[1:]
-        return [c.strip().replace("\\|", "|") for c in re.split(r"(?<!\\)\|", inner)]
-
-    for line in [*text.splitlines(), ""]:
-        if line.strip().startswith("|"):
-            block.append(line)
-            continue
-        if len(block) >= 2 and re.fullmatch(r"\|?(\s*:?-+:?\s*\|)+\s*:?-*:?\s*\|?", block[1].strip()):
-            tables.append((cells(block[0]), [cells(b) for b in block[2:]]))
-        block = []
-    return tables
-
-
-SCRIPT_COMMAND = re.compile(r"\bpython experiments/(\w+)\.py\b")
-
-
-def rerun_command(command: str) -> str:
-    """A recorded command as it is run today: `python experiments/<study>.py ...`, as runs before the studies became
-    the package `experiments` recorded it, becomes `python -m experiments.<study> ...`; any other command (e.g.
-    `python -m experiments.pareto ...` or `python -m lnf.train ...`) is returned as it is."""
-    return SCRIPT_COMMAND.sub(r"python -m experiments.\1", command)
-
-
-def provenance_line(name: str, prov: dict[str, Any], spec: Spec) -> str:
-    """The line under a table: machine, date, command(s) as the run recorded them, commit, note, where its sources
-    are; the command of a rerun it suggests is spelled as it is run today (:func:`rerun_command`)."""
-    commands = prov.get("command") or spec.command
-    commands = [commands] if isinstance(commands, str) else list(commands)
-    shown = "; ".join(f"`{c}`" for c in commands)
-    text = f"Made on {prov.get('machine') or 'an unrecorded machine'}"
-    text += f", {prov['date']}" if prov.get("date") else ""
-    text += f", by {shown}"
-    text += f", at commit {prov['commit']}" if prov.get("commit") else ""
-    text += "."
-    if prov.get("note"):
-        note = prov["note"].rstrip(".")
-        text += f" {note[:1].upper()}{note[1:]}."
-    if spec.kind == "stack":
-        text += " Sources: " + ", ".join(f"`results/{part}/`" for _, part in spec.parts)
-    elif spec.kind == "cells":
-        text += f" Cells: `results/{name}/cells.json`; sources: " + ", ".join(f"`results/{p}/`" for p in prov["parts"])
-    else:
-        text += f" Source: `results/{name}/`"
-    if prov.get("transcribed_from_docs"):
-        rerun = f"rerun `{rerun_command(commands[0])}`" if len(commands) == 1 else "rerun the commands above"
-        if spec.kind == "transcribed":
-            text += f" (transcribed from the run's report; {rerun} and update `results/{name}/table.csv` from its output)"
-        else:
-            collect = "--collect" if spec.raw else f"--collect {name}=<its output folder>"
-            text += (f" (transcribed from the run's report; {rerun} to regenerate from raw outputs, then "
-                     f"`python -m experiments.results_tables {collect}`)")
-    return f"*{text}.*"
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -635,17 +354,6 @@ def rebuild(text: str, where: str, used: Optional[dict[str, list[str]]] = None) 
     return "\n".join(out)
 
 
-def write_atomic(path: Path, text: str) -> None:
-    """lnf.tempfiles.write_text_atomic's twin: this script renders and checks with the standard library alone, and
-    importing anything from lnf loads torch."""
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    try:
-        tmp.write_text(text)
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
-
-
 def run(check: bool) -> int:
     used: dict[str, list[str]] = {}
     stale = []
@@ -655,8 +363,10 @@ def run(check: bool) -> int:
         new = rebuild(text, where, used)
         if new != text:
             stale.append(where)
-            if not check:
-                write_atomic(path, new)
+            if not check:  # lnf only here: importing it loads torch, which rendering and checking do without
+                from lnf.tempfiles import write_text_atomic
+
+                write_text_atomic(path, new)
     unused = sorted(p.name for p in RESULTS.iterdir() if p.is_dir() and p.name not in used) if RESULTS.is_dir() else []
     for name in unused:
         print(f"note: results/{name}/ is not shown by any table marker", file=sys.stderr)

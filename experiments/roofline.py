@@ -178,10 +178,7 @@ def main(argv=None) -> None:
     rows += baselines(study, scene, latent, peak, batches[-2] if len(batches) > 1 else batches[0], order, spatial)
     csv_path = study.write_csv("roofline.csv", rows)
 
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = S.pyplot()
 
     fig, ax = plt.subplots(figsize=(7.5, 6.2), layout="constrained")
     f = np.array([r["flops"] for r in rows])

@@ -46,61 +46,47 @@ import json
 import os
 import platform
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Callable, Optional
 
 import numpy as np
 import torch
 
-from experiments import studylib
+from experiments import scene_figures as figures, studylib
 from lnf.baselines.latent_mlp import LatentMLPDynamics
 from lnf.baselines.pod import PODGalerkin
-from lnf import metrics as M
-from lnf.dataset import SOURCE_ARRAYS, DatasetConfig
-from lnf.evaluate import ensure_code_range, evaluation_data
-from lnf.evaluation import evaluate_rollouts, long_horizon_energy, trajectory_controls
+from lnf.evaluation import long_horizon_energy, trajectory_controls
+from lnf.evaluation_pipeline import (EvaluationData, EvaluationSpec, checkpoint_data, ensure_code_range,
+                                     evaluate_model)
 from lnf.model import load
-from lnf.plotting import _subscript, save_figure
+from lnf.tempfiles import write_json_atomic
 from lnf.train import fit_latent_dynamics
-from lnf.training.callbacks import write_json_atomic
 from lnf.training.datamodule import SnapshotDataModule
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
 def datamodule_of(model: Any) -> SnapshotDataModule:
-    """The checkpoint's own dataset (generated if missing). A checkpoint's data path outside the data folder is
-    only read, as lnf.evaluate reads it (:func:`lnf.evaluate.evaluation_data`): nothing of a user's is overwritten."""
-    data = dict(model.checkpoint.get("data") or {})
-    if not data:
-        raise SystemExit("the checkpoint records no data settings")
-    data.pop("checksum", None)
-    if data.get("source") != SOURCE_ARRAYS:
-        settings = {k: v for k, v in data.items() if k not in ("path", "on_mismatch", "explicit_path")}
-        data_dir = Path(os.environ.get("LNF_DATA_DIR") or Path(os.environ.get("LNF_ROOT", ROOT)) / "data")
-        data["path"] = str(evaluation_data(model.scene, DatasetConfig.from_mapping(settings), Path(data["path"]),
-                                           data_dir.resolve(), data.get("on_mismatch", "regenerate"),
-                                           bool(data.get("explicit_path", False))))
-        data["explicit_path"] = True  # the file ensured above: the datamodule reads it, never writes it
-    dm = SnapshotDataModule(scene=model.scene, **data)
+    """The checkpoint's own dataset (generated if missing), found as lnf.evaluate finds it
+    (:func:`lnf.evaluation_pipeline.checkpoint_data`): a data path outside the data folder is only read."""
+    data_dir = Path(os.environ.get("LNF_DATA_DIR") or Path(os.environ.get("LNF_ROOT", ROOT)) / "data")
+    path, _ = checkpoint_data(model, data_dir.resolve())
+    record = {k: v for k, v in model.checkpoint["data"].items() if k != "checksum"}
+    dm = SnapshotDataModule(scene=model.scene, **{**record, "path": str(path), "explicit_path": True})
     dm.prepare_data()
     return dm
 
 
 def evaluate(model: Any, split: Any, integrator: Any = None, states: np.ndarray | None = None,
              stride: int = 1) -> Any:
-    """Roll out the split (or `states`, re-simulated ground truth) on the stored fine grid; `stride` subsamples time.
-
-    Default integrator: the implicit midpoint rule of order 2 (see MIDPOINT)."""
-    integrator = MIDPOINT if integrator is None else integrator
-    train_horizon = float(split.times[split.train_times])
-    if states is None:
-        return evaluate_rollouts(model, split.states[:, ::stride], split.times[::stride], split.fine_points,
-                                 train_horizon, true_fields=split.fields[:, ::stride],
-                                 true_velocities=split.velocities[:, ::stride], integrator=integrator)
-    return evaluate_rollouts(model, states[:, ::stride], split.times[::stride], split.fine_points, train_horizon,
-                             integrator=integrator)
+    """Roll out the split (or `states`, re-simulated ground truth: the scene's fields, energies and loads of them) on
+    the stored fine grid with `integrator` (default: MIDPOINT); `stride` subsamples time."""
+    data = EvaluationData.of_split(split, model.scene, stride=stride)
+    if states is not None:
+        data = replace(data, states=states[:, ::stride], true_fields=None, true_velocities=None, true_energies=None,
+                       controls=None)
+    return evaluate_model(model, data, EvaluationSpec(integrator=integrator or MIDPOINT, label="rollout")).rollouts
 
 
 # the structure-preserving integrator of these measurements: order 2 (the order-4 composition's backward substep
@@ -108,61 +94,8 @@ def evaluate(model: Any, split: Any, integrator: Any = None, states: np.ndarray 
 MIDPOINT = {"name": "implicit_midpoint", "order": 2}
 
 
-def _figure() -> tuple[Any, Any]:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt.subplots(figsize=(5.8, 4.2), layout="constrained")
-
-
-def _ours_against_reference(times: np.ndarray, ours: np.ndarray, reference: np.ndarray, ylabel: str, title: str,
-                            path: Path, horizon: float | None = None, n: int = 3) -> Path:
-    """One quantity (n_traj, T) over time for the first `n` trajectories, ours (solid) and the reference's
-    (dotted)."""
-    from matplotlib.lines import Line2D
-
-    fig, ax = _figure()
-    shown = min(n, len(ours))
-    for i in range(shown):
-        ax.plot(times, reference[i], color=f"C{i}", ls=":", lw=1.8)
-        ax.plot(times, ours[i], color=f"C{i}", lw=1.3, alpha=0.9)
-    handles = [Line2D([], [], color="0.3", lw=1.3, label="ours"),
-               Line2D([], [], color="0.3", ls=":", lw=1.8, label="full-order reference")]
-    if horizon is not None:
-        ax.axvline(horizon, color="k", ls="--", lw=0.8)
-        handles.append(Line2D([], [], color="k", ls="--", lw=0.8, label="training horizon"))
-    handles += [Line2D([], [], color=f"C{i}", lw=4, label=f"test trajectory {i}") for i in range(shown)]
-    ax.set_xlabel("time t [s]")
-    ax.set_ylabel(ylabel)
-    ax.grid(alpha=0.3)
-    ax.set_title(title, fontsize=9)
-    studylib.legend_outside(ax, "below", handles=handles, ncols=3)
-    return save_figure(fig, path)
-
-
-def probe(evaluation: Any) -> tuple[int, int]:
-    """(point, component) of the evaluation's true field that moves most over time (its largest standard deviation
-    in time, averaged over the trajectories): the free end of a cantilever, the middle of a string."""
-    motion = np.nan_to_num(np.asarray(evaluation.true_fields, dtype=np.float64)).std(axis=1).mean(axis=0)  # (N, A)
-    point, component = np.unravel_index(int(np.argmax(motion)), motion.shape)
-    return int(point), int(component)
-
-
-def _probe_figure(ev: Any, path: Path, title: str, horizon: float | None = None,
-                  at: Optional[tuple[int, int]] = None) -> Path:
-    """The field at the point (and component) that moves most (`at`, default :func:`probe`) over time, ours against
-    the full-order reference's."""
-    point, component = probe(ev) if at is None else at
-    where = ", ".join(f"{x:.3g}" for x in ev.points[point])
-    return _ours_against_reference(ev.times, ev.pred_fields[:, :, point, component],
-                                   ev.true_fields[:, :, point, component],
-                                   f"field component q{_subscript(component + 1)} at X = ({where})", title, path,
-                                   horizon)
-
-
 def pick(metrics: dict[str, float], *keys: str) -> dict[str, float]:
+    """The `keys` of `metrics` that it has, as floats."""
     return {k: float(metrics[k]) for k in keys if k in metrics}
 
 
@@ -223,23 +156,8 @@ def black_box(ctx: Context) -> dict[str, Any]:
     result = {"ours": {**pick(ours.metrics, *keys), **drift_ours}, "black_box": {**pick(bb.metrics, *keys), **drift_bb},
               "black_box_fit": fit, "long_steps": steps, "long_horizon_s": steps * dt}
     result["drift_ratio_median"] = drift_bb["energy_drift_long/median"] / max(drift_ours["energy_drift_long/median"], 1e-300)
-    vpt_ours, vpt_bb = _vpt_per_trajectory(ours), _vpt_per_trajectory(bb)
-    fig, ax = _figure()
-    ax.hist([vpt_ours, vpt_bb], bins=10, color=[studylib.COLORS["lnf"], studylib.COLORS["latent_mlp"]],
-            label=[f"ours (median {np.median(vpt_ours):.2f} s)", f"black box (median {np.median(vpt_bb):.2f} s)"])
-    ax.axvline(horizon, color="k", ls="--", lw=0.8, label="training horizon")
-    ax.set_xlabel(studylib.metric_label("vpt") + " of each test trajectory")
-    ax.set_ylabel("test trajectories")
-    ax.grid(alpha=0.3, axis="y")
-    studylib.legend_outside(ax, "below", ncols=2)
-    save_figure(fig, ctx.out / "vpt.png")
+    figures.vpt_histogram(ours, bb, horizon, ctx.out / "vpt.png")
     return result
-
-
-def _vpt_per_trajectory(evaluation: Any) -> np.ndarray:
-    """`vpt` of every trajectory (the metrics hold only its median and min)."""
-    w = np.full(len(evaluation.points), 1.0 / len(evaluation.points))
-    return M.valid_prediction_time(evaluation.pred_fields, evaluation.true_fields, w, evaluation.times)
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -272,21 +190,7 @@ def modes(ctx: Context) -> dict[str, Any]:
     ours_err = float(ours.metrics["field_rel_l2/all/median"])
     needed = next((r["k"] for r in pod_rows if r["field_rel_l2/all/median"] <= ours_err), None)
     needed_oracle = next((k + 1 for k, e in enumerate(oracle) if e <= ours_err), None)
-    d = int(model.latent_dim)
-    fig, ax = _figure()
-    ks = [r["k"] for r in pod_rows]
-    ax.semilogy(ks, [r["field_rel_l2/all/median"] for r in pod_rows], "s-", color=studylib.COLORS["pod"], alpha=0.85,
-                label="POD-Galerkin rollout")
-    ax.semilogy(range(1, max_modes + 1), oracle, "k:", marker=".", label="best linear k-mode projection (full-grid SVD)")
-    ax.semilogy([d], [ours_err], "o", ms=9, color=studylib.COLORS["lnf"], label=f"ours, d = {d} ({ours_err:.3f})",
-                zorder=4)
-    ax.axhline(ours_err, color=studylib.COLORS["lnf"], lw=0.8, ls="--")
-    ax.set_xlabel("modes k (POD) / latent dimension d (ours)")
-    ax.set_xticks(range(1, max_modes + 1))
-    ax.set_ylabel(studylib.metric_label("field_rel_l2/all/median", wrap=True))
-    ax.grid(alpha=0.3, which="both")
-    studylib.legend_outside(ax, "below", ncols=1)
-    save_figure(fig, ctx.out / "modes.png")
+    figures.modes_figure(pod_rows, oracle, int(model.latent_dim), ours_err, ctx.out / "modes.png")
     return {"ours": pick(ours.metrics, "field_rel_l2/all/median", "field_rel_l2/in_horizon/median",
                          "field_rel_l2/extrapolation/median", "projection_rel_l2/all/median", "energy_rel_err/median"),
             "pod": pod_rows, "oracle_projection": oracle, "pod_modes_to_match_ours": needed,
@@ -393,14 +297,11 @@ def speedup(ctx: Context) -> dict[str, Any]:
                   horizon_s=float(times[in_h][-1]), fom_state_size=int(states0.shape[-1]))
     if tabulation is not None:
         result["table"] = {k: v for k, v in model.dynamics().info.items() if not isinstance(v, list)}
-    e, horizon = base.energies, float(times[split.train_times])
+    horizon = float(times[split.train_times])
     title = f"test trajectories, implicit midpoint, dt = {times[1] - times[0]:g} s"
-    if "kinetic_true" in e:  # a scene without reference energies has no energy figure
-        _ours_against_reference(times, (e["kinetic_pred"] + e["potential_pred"]) / scene.energy_scale,
-                                (e["kinetic_true"] + e["potential_true"]) / scene.energy_scale,
-                                "total energy / E_scale",
-                                title, ctx.out / "energy.png", horizon)
-    _probe_figure(base, ctx.out / "tip.png", title, horizon)
+    if "kinetic_true" in base.energies:  # a scene without reference energies has no energy figure
+        figures.energy_figure(base, scene.energy_scale, title, ctx.out / "energy.png", horizon)
+    figures.probe_figure(base, ctx.out / "tip.png", title, horizon)
     return result
 
 
@@ -451,19 +352,13 @@ def loads(ctx: Context) -> dict[str, Any]:
     unseen = evaluate(model, split, states=scene.simulate(unseen_states, times))
     text = ", ".join(f"{x:.3g}" for x in load)
     ranges = ", ".join(f"{a:.3g}…{b:.3g}" for a, b in zip(training.min(0), training.max(0)))
-    _probe_figure(unseen, ctx.out / "tip_unseen_load.png",
-                  f"a load not seen in training ({text}; training {ranges}), dt = {times[1] - times[0]:g} s",
-                  horizon=float(times[split.train_times]))
+    figures.probe_figure(unseen, ctx.out / "tip_unseen_load.png",
+                         f"a load not seen in training ({text}; training {ranges}), dt = {times[1] - times[0]:g} s",
+                         horizon=float(times[split.train_times]))
     return {"test": pick(base.metrics, *LOAD_KEYS),
             "unseen_load": {"controls": load.tolist(), "training_range": [[float(a), float(b)] for a, b in
                                                                           zip(training.min(0), training.max(0))],
                             **pick(unseen.metrics, *LOAD_KEYS)}}
-
-
-def _total_energies(ev: Any) -> tuple[np.ndarray, np.ndarray]:
-    """Total energy (n, T) of an evaluation, ours and the reference's."""
-    e = ev.energies
-    return e["kinetic_pred"] + e["potential_pred"], e["kinetic_true"] + e["potential_true"]
 
 
 def _largest_rise(energy: np.ndarray, scale: float) -> float:
@@ -478,9 +373,7 @@ def decay(ctx: Context) -> dict[str, Any]:
     states0 = split.states[:, 0]
     free = with_controls(scene, states0, np.zeros_like(scene.controls(states0))) if scene.has_controls else states0
     ev = evaluate(model, split, states=scene.simulate(free, times))
-    pred, true = _total_energies(ev)
-    _ours_against_reference(times, pred / scene.energy_scale, true / scene.energy_scale, "total energy / E_scale",
-                            "free decay (no load)", ctx.out / "decay.png")
+    pred, true = figures.energy_figure(ev, scene.energy_scale, "free decay (no load)", ctx.out / "decay.png")
     return {"free_decay": {**pick(ev.metrics, *LOAD_KEYS),
                            "energy_ratio_end_over_start_ours_median": float(np.median(pred[:, -1] / pred[:, 0])),
                            "energy_ratio_end_over_start_fem_median": float(np.median(true[:, -1] / true[:, 0])),
@@ -497,12 +390,11 @@ def damped(ctx: Context) -> dict[str, Any]:
         model.set_tabulation(None)
     split, times = ctx.split, ctx.split.times
     ev = evaluate(model, split, states=scene.simulate(split.states[:, 0], times))
-    pred, true = _total_energies(ev)
     horizon = float(times[split.train_times])
-    _ours_against_reference(times, pred / scene.energy_scale, true / scene.energy_scale, "total energy / E_scale",
-                            f"damped, α = {rate:g} 1/s (trained undamped)", ctx.out / "damped.png", horizon=horizon)
-    _probe_figure(ev, ctx.out / "damped_tip.png", f"damped, α = {rate:g} 1/s (trained undamped), dt = "
-                  f"{times[1] - times[0]:g} s", horizon=horizon)
+    pred, true = figures.energy_figure(ev, scene.energy_scale, f"damped, α = {rate:g} 1/s (trained undamped)",
+                                       ctx.out / "damped.png", horizon)
+    figures.probe_figure(ev, ctx.out / "damped_tip.png", f"damped, α = {rate:g} 1/s (trained undamped), dt = "
+                         f"{times[1] - times[0]:g} s", horizon=horizon)
     lost_ours, lost_true = pred[:, 0] - pred[:, -1], true[:, 0] - true[:, -1]
     return {"damped": {"damping_per_second": rate, **pick(ev.metrics, *LOAD_KEYS),
                        "dissipated_ratio_ours_over_reference_median": float(np.median(lost_ours / lost_true)),
@@ -514,44 +406,13 @@ def shape(ctx: Context) -> dict[str, Any]:
     """The deformed body in 3-D, ours against the reference, at four times of the first test trajectory
     (``shape.png``: the evaluation points moved to X + u, coloured by the displacement's size, the reference's
     beside ours, two times before the training horizon and two after)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    ev, split = ctx.base, ctx.split
-    times, horizon = ev.times, float(split.times[split.train_times])
-    picks = np.unique(np.linspace(1, len(times) - 1, 4).round().astype(int))
-    X = np.asarray(ev.points, dtype=np.float64)
-    fields = {"full-order reference": ev.true_fields[0], "ours": ev.pred_fields[0]}
-    scale = float(np.nanmax(np.linalg.norm(ev.true_fields[0], axis=-1)))
-    lo, hi = (X + np.nan_to_num(ev.true_fields[0]).min(0)).min(0), (X + np.nan_to_num(ev.true_fields[0]).max(0)).max(0)
-    fig = plt.figure(figsize=(3.1 * len(picks), 5.4), layout="constrained")
-    for row, (label, u) in enumerate(fields.items()):
-        for col, k in enumerate(picks):
-            ax = fig.add_subplot(2, len(picks), row * len(picks) + col + 1, projection="3d")
-            Y = X + u[k]
-            art = ax.scatter(Y[:, 0], Y[:, 1], Y[:, 2], c=np.linalg.norm(u[k], axis=-1), s=3, cmap="viridis",
-                             vmin=0.0, vmax=scale, depthshade=False)
-            ax.set(xlim=(lo[0], hi[0]), ylim=(lo[1], hi[1]), zlim=(lo[2], hi[2]), xlabel="x₁ [m]", ylabel="x₂ [m]",
-                   zlabel="x₃ [m]")
-            ax.set_box_aspect(hi - lo)
-            ax.view_init(elev=18, azim=-60)
-            ax.tick_params(labelsize=6, pad=0)
-            ax.locator_params(axis="y", nbins=2)
-            ax.locator_params(axis="z", nbins=3)
-            side = "before" if times[k] < horizon else "after"
-            ax.set_title(f"{label}\nt = {times[k]:.2f} s ({side} the horizon)", fontsize=8)
-    fig.colorbar(art, ax=fig.axes, shrink=0.6, label="displacement ‖u‖ [m]")
-    fig.suptitle(f"test trajectory 0: the deformed body (points X + u), dt = {times[1] - times[0]:g} s", fontsize=9)
-    save_figure(fig, ctx.out / "shape.png")
-    return {"shape_figure": "shape.png", "shape_times_s": [float(times[k]) for k in picks]}
+    picks = figures.shape_figure(ctx.base, float(ctx.split.times[ctx.split.train_times]), ctx.out / "shape.png")
+    return {"shape_figure": "shape.png", "shape_times_s": [float(ctx.base.times[k]) for k in picks]}
 
 
 def _why_not_shape(scene: Any) -> Optional[str]:
-    if scene.body_dim != 3 or scene.field_dim != 3:
-        return "its body is not 3-D with a 3-D displacement field (the deformed-shape view is a 3-D one)"
-    return None
+    return None if scene.body_dim == 3 and scene.field_dim == 3 else \
+        "its body is not 3-D with a 3-D displacement field (the deformed-shape view is a 3-D one)"
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -568,9 +429,8 @@ def _no_simulator(scene: Any) -> Optional[str]:
 
 
 def _why_not_black_box(scene: Any) -> Optional[str]:
-    if not scene.baselines().get("latent_mlp", True):
-        return "its baselines() says the black-box latent MLP cannot run it (latent_mlp: False)"
-    return None
+    return None if scene.baselines().get("latent_mlp", True) else \
+        "its baselines() says the black-box latent MLP cannot run it (latent_mlp: False)"
 
 
 def _why_not_modes(scene: Any) -> Optional[str]:
@@ -710,7 +570,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     if args.dynamics != "checkpoint" and hasattr(model, "set_tabulation"):
         model.set_tabulation((model.tabulation or {}) if args.dynamics == "tabulated" else None)
     if getattr(model, "tabulation", None) is not None:
-        ensure_code_range(model, Path(dm.path), model.scene, dm.config)
+        ensure_code_range(model, Path(dm.path), dm.config)
     ctx = Context(model=model, dm=dm, out=out, options=args)
     result: dict[str, Any] = {"scene": name, "measurements": [], "skipped": {}}
     for m in chosen:

@@ -37,10 +37,7 @@ def sweeps(study: S.Study) -> None:
 
 
 def plot(study: S.Study, rows: list[dict]) -> Path:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = S.pyplot()
 
     fig, axes = plt.subplots(1, 2, figsize=(11.5, 5.0), layout="constrained", sharey=True)
     percent = lambda v: f"{100 * v:g} %"  # noqa: E731

@@ -253,10 +253,7 @@ def _say_not_run(ax, part: str) -> None:
 
 
 def plot(study: S.Study, rows: list[dict], parts: Sequence[str] = PARTS) -> Path:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = S.pyplot()
     from matplotlib.lines import Line2D
     from matplotlib.patches import Patch
 

@@ -2,439 +2,43 @@
 
 Loads a checkpoint without training, rolls out the test trajectories with any integrator, time step,
 horizon, quadrature and evaluation grid, writes metrics.json and Figure 3 into the Hydra output dir.
+``evaluate(cfg)`` is a pure function of the composed config; ``main()`` only adds ``@hydra.main``. The settings
+are checked and priced by :mod:`lnf.evaluation_settings`; the evaluation is :mod:`lnf.evaluation_pipeline`'s.
 """
 from __future__ import annotations
 
 import logging
-import math
-import os
-import time
 from pathlib import Path
-from typing import Any, Optional
 
 import hydra
-import numpy as np
 import torch
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
 from lnf.allocator import keep_freed_memory
-from lnf.config_keys import check_known_keys
-from lnf.dataset import (GROUND_TRUTH_FOLDER, SOURCE_ARRAYS, SPLITS, DatasetConfig, DatasetError, content_checksum,
-                         ensure_dataset, load_split, simulated_ground_truth, stored_generation, verify_dataset)
-from lnf.decoding_table import check_decoding
-from lnf.dynamics_kind import dynamics_kind
-from lnf.boundary import is_clamped
-from lnf.error_budget import read_error_budget
-from lnf.evaluation import evaluate_rollouts, long_horizon_energy
-from lnf.evaluation_cost import EvaluationCost, evaluation_cost, quadrature_size, size_text
-from lnf.model import build, load
-from lnf.quadrature import grid_shape_of, midpoint_grid
+from lnf.dataset import load_split
+from lnf.evaluation_pipeline import checkpoint_data, ensure_code_range, evaluate_model, write_report
+from lnf.evaluation_settings import (check_budget, check_settings, choose_dynamics, planned_cost, rollout_request,
+                                     trust_setting)
+from lnf.model import load
 from lnf.run_lock import EVALUATION_RESULTS, run_folder_lock, set_aside
-from lnf.trajectories import TIME_TOLERANCE
-from lnf.trust import trusted_modules
-from lnf.training.callbacks import save_evaluation_figures, stored_reference, write_json_atomic
+from lnf.tempfiles import write_json_atomic
 from lnf.training.console import quiet_console
-from lnf.utils import is_number, check_numbers, print_summary, run_metadata
+from lnf.utils import print_summary, run_metadata
 
 log = logging.getLogger("lnf.evaluate")
-
-
-def evaluation_points(grid: DictConfig, bounds: list[list[float]], stored: np.ndarray) -> tuple[np.ndarray, Optional[tuple]]:
-    """Points (N, dim_B) of the evaluation grid and its shape (None for scattered points)."""
-    kind = grid.get("kind", "stored")
-    dim = len(bounds)
-    if kind == "stored":
-        return stored, grid_shape_of(stored, bounds)  # None: scattered points (mesh nodes, samples)
-    if kind == "uniform":
-        res = int(grid.resolution)
-        if res < 1:
-            raise ValueError(f"grid.resolution must be ≥ 1 (points per axis), got {res}: the grid has no points")
-        return midpoint_grid(res, bounds).numpy(), (res,) * dim
-    if kind == "random":
-        n = int(grid.n_points)
-        if n < 1:
-            raise ValueError(f"grid.n_points must be ≥ 1, got {n}: the evaluation grid has no points")
-        rng = np.random.default_rng(int(grid.get("seed", 0)))
-        b = np.asarray(bounds)
-        return (b[:, 0] + (b[:, 1] - b[:, 0]) * rng.random((n, dim))).astype(np.float32), None
-    raise ValueError(f"grid.kind must be 'stored', 'uniform' or 'random', got {kind!r}")
-
-
-def read_initial_states(spec: Any) -> np.ndarray:
-    """Full-order initial states (n, state_dim) from a list of lists or from the path of a .npy file (a large state,
-    such as the elastic scene's nodal displacements and velocities, does not fit on a command line)."""
-    if isinstance(spec, (str, Path)):
-        path = Path(spec)
-        if path.suffix != ".npy" or not path.is_file():
-            raise ValueError(f"initial_states={spec!r}: expected a list of states or an existing .npy file of shape "
-                             f"(n, state_dim)")
-        try:
-            return np.asarray(np.load(path, allow_pickle=False), dtype=np.float64)
-        except (ValueError, OSError) as err:
-            raise ValueError(f"initial_states={spec!r}: not a readable .npy array of states ({err})") from err
-    return np.asarray(OmegaConf.to_container(spec, resolve=True) if OmegaConf.is_config(spec) else spec,
-                      dtype=np.float64)
-
-
-def choose_dynamics(model: Any, spec: Any, ckpt_path: Any) -> None:
-    """Apply ``dynamics=tabulated`` / ``dynamics=lagrangian`` to a loaded model (None keeps the checkpoint's)."""
-    if not spec:
-        return
-    target = str(spec.get("_target_", ""))
-    kind = dynamics_kind(spec)  # read before resolving: a learned dynamics' spec names training keys
-    if not kind.trained:
-        spec = OmegaConf.to_container(spec, resolve=True) if OmegaConf.is_config(spec) else dict(spec)
-    if not hasattr(model, "set_tabulation") or getattr(model, "latent_dynamics", None) is not None:
-        raise ValueError(f"dynamics={target.rpartition('.')[2] or spec} applies to our model's pulled-back Lagrangian; "
-                         f"the checkpoint {ckpt_path} holds a {type(model).__name__} with its own dynamics")
-    if kind.trained:
-        raise ValueError(f"dynamics: lnf.evaluate can switch between the exact and the tabulated pullback "
-                         f"(dynamics=lagrangian, dynamics=tabulated), got _target_={target!r}, a {kind.name} dynamics "
-                         f"(learned dynamics are trained)")
-    model.set_tabulation(spec if kind.needs_codes else None)
-
-
-@torch.no_grad()
-def ensure_code_range(model: Any, path: Path, scene: Any, dcfg: DatasetConfig) -> None:
-    """A tabulated dynamics needs the training codes' range; a checkpoint written before lnf recorded it gets
-    it here from the training split (its training samples, reduced on the coarse grid)."""
-    if getattr(model, "tabulation", None) is None or bool(torch.isfinite(model.code_low).all()):
-        return
-    train = load_split(path, "train", scene=scene, cfg=dcfg)
-    p = model.reference_tensor()
-    points = torch.as_tensor(train.coarse_points, dtype=p.dtype)
-    fields = torch.as_tensor(train.coarse_fields[:, : train.train_times], dtype=p.dtype).flatten(0, 1)
-    codes = torch.cat([model.reduce(points, fields[i:i + 256]) for i in range(0, len(fields), 256)])
-    model.track_code_range(codes, reset=True)
-    log.info("the checkpoint has no range of training codes: took it from %d training snapshots: %s .. %s",
-             len(fields), model.code_low.tolist(), model.code_high.tolist())
-
-
-GRID_KINDS = ("stored", "uniform", "random")
-
-
-def _number(cfg: DictConfig, key: str, expected: str, positive: bool, null: str = "", unit: str = "s") -> None:
-    """`key` must be a finite number (> 0 if `positive`, else ≥ 0) [`unit`], or null when `null` says what null
-    means."""
-    value = OmegaConf.select(cfg, key)
-    if value is None and null:
-        return
-    if is_number(value) and math.isfinite(value) and (value > 0 if positive else value >= 0):
-        return
-    raise ValueError(f"{key} must be a finite number {'>' if positive else '≥'} 0 [{unit}] ({expected})"
-                     f"{' or null (' + null + ')' if null else ''}, got {value!r}")
-
-
-def _integer(cfg: DictConfig, key: str, minimum: int, expected: str, null: str = "") -> None:
-    """`key` must be an integer ≥ `minimum` (an integral float such as 4.0 passes), or null when `null` is given."""
-    value = OmegaConf.select(cfg, key)
-    if value is None and null:
-        return
-    if is_number(value) and math.isfinite(value) and value == int(value) and value >= minimum:
-        return
-    raise ValueError(f"{key} must be an integer ≥ {minimum} ({expected}){' or null (' + null + ')' if null else ''}, "
-                     f"got {value!r}")
-
-
-def rollout_frames(cfg: DictConfig, dt: float, horizon: float) -> int:
-    """The frames of a rollout over `horizon` [s] sampled every `dt` [s] (t = 0, dt, …, horizon − dt; either may be
-    the data's where `cfg` leaves it null): horizon/dt, which must be a whole number (to 1e-9, relative; to
-    :data:`lnf.trajectories.TIME_TOLERANCE` where one is the data's) and ≥ 2, or
-    a ValueError names both and the horizons that work. An explicit train_horizon beyond the horizon is refused
-    too: nothing would come after it."""
-    span = _span(cfg, dt, horizon)
-    ratio = horizon / dt
-    frames = int(round(ratio))
-    # a data's times are uniform to TIME_TOLERANCE (a user's arrays); two settings, to rounding
-    tol = 1e-9 if cfg.get("horizon") is not None and cfg.get("dt") is not None else TIME_TOLERANCE
-    if abs(ratio - frames) > tol * max(frames, 1):
-        works = [f"horizon={k * dt:.12g}" for k in (math.floor(ratio), math.ceil(ratio)) if k >= 2]
-        raise ValueError(f"{span} is {ratio:.6g} steps of dt, not a whole number: the rollout samples t = 0, dt, …, "
-                         f"horizon − dt and would cover {frames * dt:g} s instead of {horizon:g} s; set "
-                         f"{' or '.join(works)} (a whole number of dt), or a dt that divides the horizon")
-    if frames < 2:
-        raise ValueError(f"{span} is {frames} frame{'' if frames == 1 else 's'}: a rollout needs at least 2 frames "
-                         f"(t = 0 and dt), i.e. horizon ≥ 2·dt = {2 * dt:g} s")
-    train_horizon = cfg.get("train_horizon")
-    if train_horizon is not None and train_horizon > horizon * (1 + 1e-9):
-        raise ValueError(f"train_horizon={_shown(train_horizon)} [s] (where extrapolation starts) is beyond the "
-                         f"evaluated {span}: no frame would come after it; set train_horizon ≤ {horizon:g}, or null "
-                         f"(the data's training horizon)")
-    return frames
-
-
-def check_settings(cfg: DictConfig) -> None:
-    """Refuse keys lnf.evaluate does not use and settings it cannot run, before anything is loaded or rolled out."""
-    check_known_keys(cfg, "evaluate", "lnf.evaluate")
-    if OmegaConf.is_missing(cfg, "ckpt_path") or cfg.get("ckpt_path") in (None, ""):
-        raise ValueError("ckpt_path is required: the checkpoint to evaluate, e.g. "
-                         "ckpt_path=outputs/pendulum/runs/<date>/checkpoints/last.ckpt")
-    trusted_modules(trust_setting(cfg))  # a bad module name is refused here, naming it
-    if cfg.get("split") not in SPLITS:
-        raise ValueError(f"split must be one of {', '.join(SPLITS)}, got {cfg.get('split')!r}")
-    _number(cfg, "dt", "the sample spacing of the evaluation", True, "the data's")
-    _number(cfg, "horizon", "how long to roll out", True, "the data's horizon")
-    _number(cfg, "train_horizon", "where extrapolation starts; 0 leaves no time before it", True,
-            "the data's training horizon")
-    if cfg.get("dt") is not None and cfg.get("horizon") is not None:
-        rollout_frames(cfg, float(cfg.dt), float(cfg.horizon))  # a whole number ≥ 2 of dt, before anything is loaded
-    _integer(cfg, "max_trajectories", 1, "how many trajectories of the split to evaluate", "all of them")
-    _integer(cfg, "long_steps", 0, "steps of the long-horizon energy check; 0 skips it")
-    _integer(cfg, "long_trajectories", 1, "trajectories of the long-horizon energy check")
-    _integer(cfg, "figures", 0, "how many trajectories get a Figure 3; 0 draws none")
-    _integer(cfg, "max_reduction_points", 1, "evaluation points that ρ̃ uses", "all of them")
-    _integer(cfg, "threads", 1, "torch CPU threads", "torch's default")
-    check_decoding(cfg.get("decoding", "auto"))
-    kind = OmegaConf.select(cfg, "grid.kind", default="stored")
-    if kind not in GRID_KINDS:
-        raise ValueError(f"grid.kind must be 'stored', 'uniform' or 'random', got {kind!r}")
-    _integer(cfg, "grid.resolution", 1, "points per axis of grid.kind=uniform; below 1 the grid has no points")
-    _integer(cfg, "grid.n_points", 1, "points of grid.kind=random; below 1 the grid has no points")
-    _integer(cfg, "grid.seed", 0, "the seed of grid.kind=random")
-    _number(cfg, "max_memory_gb", "the memory the evaluation may hold", True,
-            f"the memory available now, or ${MEMORY_ENV}", unit="GB")
-    _integer(cfg, "max_steps", 1, "the most integration steps of one rollout, the time budget", "no limit")
-    check_numbers(cfg)  # every other number (integrator.tol, quadrature.*, dynamics.*, initial_states): finite, in range
-
-
-MEMORY_ENV = "LNF_MAX_MEMORY_GB"  # the memory lnf.evaluate may use [GB], where max_memory_gb is null
-GB = 2 ** 30
-
-
-def _meminfo_available() -> Optional[int]:
-    """MemAvailable of /proc/meminfo [bytes] (Linux), None elsewhere."""
-    try:
-        for line in Path("/proc/meminfo").read_text().splitlines():
-            if line.startswith("MemAvailable:"):
-                return int(line.split()[1]) * 1024
-    except (OSError, ValueError, IndexError):
-        pass
-    return None
-
-
-def _cgroup_room() -> Optional[int]:
-    """Bytes left under this process's cgroup memory limit (v2 memory.max, v1 limit_in_bytes), None without one."""
-    for limit, usage in (("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory.current"),
-                         ("/sys/fs/cgroup/memory/memory.limit_in_bytes", "/sys/fs/cgroup/memory/memory.usage_in_bytes")):
-        try:
-            text = Path(limit).read_text().strip()
-            if text == "max" or int(text) >= 2 ** 60:  # no limit
-                continue
-            return max(int(text) - int(Path(usage).read_text().strip()), 0)
-        except (OSError, ValueError):
-            continue
-    return None
-
-
-def available_memory() -> tuple[Optional[int], str]:
-    """The memory [bytes] this process may still allocate, and where the figure comes from: MemAvailable of
-    /proc/meminfo (lowered to the room under a cgroup memory limit), else os.sysconf's available pages (physical
-    pages where the system has no count of available ones); (None, why) where none can be read."""
-    found = [(v, where) for v, where in ((_meminfo_available(), "MemAvailable of /proc/meminfo"),
-                                         (_cgroup_room(), "the room under the cgroup memory limit")) if v is not None]
-    if found:
-        return min(found)
-    for pages, where in (("SC_AVPHYS_PAGES", "available"), ("SC_PHYS_PAGES", "physical")):
-        try:
-            return int(os.sysconf(pages)) * int(os.sysconf("SC_PAGE_SIZE")), f"the machine's {where} memory (os.sysconf)"
-        except (ValueError, OSError, AttributeError):
-            continue
-    return None, "the available memory could not be read"
-
-
-def memory_limit(cfg: DictConfig) -> tuple[Optional[int], str]:
-    """The memory [bytes] an evaluation may hold and what set it: max_memory_gb, else $LNF_MAX_MEMORY_GB, else the
-    memory available now (:func:`available_memory`; None where it cannot be read)."""
-    if cfg.get("max_memory_gb") is not None:
-        return int(float(cfg.max_memory_gb) * GB), f"max_memory_gb={cfg.max_memory_gb}"
-    env = os.environ.get(MEMORY_ENV, "").strip()
-    if env:
-        try:
-            value = float(env)
-        except ValueError:
-            value = float("nan")
-        if not (math.isfinite(value) and value > 0):
-            raise ValueError(f"${MEMORY_ENV}={env!r} must be a finite number > 0 [GB] (the memory lnf.evaluate may "
-                             f"use); unset it to use the memory available now")
-        return int(value * GB), f"${MEMORY_ENV}={env}"
-    found, where = available_memory()
-    return found, f"the memory available now, {where}; set max_memory_gb=<GB> or ${MEMORY_ENV} to change it"
-
-
-def planned_cost(cfg: DictConfig, model: Any, data: dict[str, Any], split: Any = None
-                 ) -> tuple[EvaluationCost, Optional[float], Optional[float]]:
-    """What the evaluation asked for will cost, computed from sizes alone (nothing allocated): its
-    :class:`EvaluationCost` (trajectories, frames, points, integration steps, memory) and the dt and horizon [s] it
-    rolls out over (None where unknown). Before the data are loaded (`split` None) the sizes come from the settings
-    and the checkpoint's record of its data, unknown ones counted as 1 (a lower bound); with `split`, from the data."""
-    scene = model.scene
-    dim = len(scene.bounds)
-    generated = data.get("source") != SOURCE_ARRAYS
-    record = data if generated else {}
-    if cfg.get("initial_states") is not None:
-        n = len(read_initial_states(cfg.initial_states))
-    else:
-        n = len(split) if split is not None else int(record.get(f"n_{cfg.split}") or 1)
-        if cfg.get("max_trajectories") is not None:
-            n = min(n, int(cfg.max_trajectories))
-    if split is not None:
-        data_dt, data_frames = float(split.times[1] - split.times[0]), len(split.times)
-    else:
-        data_dt = float(record["dt"]) if record.get("dt") else None
-        data_frames = int(record["n_times"]) if record.get("n_times") else None
-    dt = float(cfg.dt) if cfg.get("dt") is not None else data_dt
-    horizon = float(cfg.horizon) if cfg.get("horizon") is not None else \
-        (data_frames * data_dt if data_frames and data_dt else None)
-    frames = rollout_frames(cfg, dt, horizon) if dt and horizon else (data_frames or 1)
-    kind = OmegaConf.select(cfg, "grid.kind", default="stored")
-    if kind == "uniform":
-        points = int(cfg.grid.resolution) ** dim
-    elif kind == "random":
-        points = int(cfg.grid.n_points)
-    elif split is not None:
-        points = len(split.fine_points)
-    else:
-        points = int(record["fine_resolution"]) ** dim if record.get("fine_resolution") else 1
-    state_dim = split.states.shape[-1] if split is not None else len(getattr(scene, "state_names", ()) or ())
-    substeps = int(OmegaConf.select(cfg, "integrator.substeps", default=1) or 1)
-    long_steps = int(cfg.get("long_steps") or 0)
-    cost = evaluation_cost(max(n, 1), max(frames, 1), max(points, 1), scene.field_dim, keep_fields=int(cfg.figures),
-                           substeps=substeps, state_dim=state_dim, latent_dim=model.latent_dim, body_dim=dim,
-                           long_trajectories=min(int(cfg.long_trajectories), max(n, 1)) if long_steps > 0 else 0,
-                           long_steps=long_steps)
-    return cost, dt, horizon
-
-
-def _shown(value: Any) -> str:
-    """A setting as it would be typed: null, 1e+09, 0.05, 64."""
-    if value is None:
-        return "null"
-    return f"{value:g}" if is_number(value) else str(value)
-
-
-def _span(cfg: DictConfig, dt: Optional[float], horizon: Optional[float]) -> str:
-    """"horizon=… at dt=…" as set, each null one with the data's value where known: what a refusal names."""
-    def shown(key: str, value: Optional[float]) -> str:
-        data = f" (the data’s: {value:g} s)" if cfg.get(key) is None and value else " [s]"
-        return f"{key}={_shown(cfg.get(key))}{data}"
-
-    return f"{shown('horizon', horizon)} at {shown('dt', dt)}"
-
-
-def check_budget(cfg: DictConfig, cost: EvaluationCost, dt: Optional[float], horizon: Optional[float]) -> None:
-    """Refuse, before anything is loaded, simulated or rolled out, an evaluation over the time budget (``max_steps``
-    integration steps per rollout, integrator.substeps counted) or over the memory it may hold (:func:`memory_limit`),
-    naming the setting, its value, the estimate, the limit and what to change."""
-    k = cost.substeps
-    max_steps = cfg.get("max_steps")
-    span = _span(cfg, dt, horizon)
-    if max_steps is not None and cost.rollout_steps > int(max_steps):
-        raise ValueError(f"{span} is {cost.frames} frames: with integrator.substeps={k} the rollout takes "
-                         f"{cost.rollout_steps:.4g} integration steps per trajectory, over max_steps={max_steps} (the "
-                         f"time budget of lnf.evaluate): lower horizon, raise dt"
-                         f"{', lower integrator.substeps' if k > 1 else ''}, or raise max_steps (null: no limit) if "
-                         f"you mean to wait for it")
-    if max_steps is not None and cost.long_rollout_steps > int(max_steps):
-        raise ValueError(f"long_steps={_shown(cfg.long_steps)} with integrator.substeps={k} is "
-                         f"{cost.long_rollout_steps:.4g} integration steps, over max_steps={max_steps} (the time "
-                         f"budget of lnf.evaluate): lower long_steps (0 skips the long-horizon check)"
-                         f"{' or integrator.substeps' if k > 1 else ''}, or raise max_steps (null: no limit) if you "
-                         f"mean to wait for it")
-    limit, where = memory_limit(cfg)
-    if limit is None:
-        log.info("the memory the evaluation may use is not checked: %s (set max_memory_gb to check it)", where)
-        return
-    if cost.rollout_memory_bytes > limit:
-        grid = {"uniform": f"grid.kind=uniform, grid.resolution={_shown(cfg.grid.resolution)}",
-                "random": f"grid.kind=random, grid.n_points={_shown(cfg.grid.n_points)}"}.get(
-            cfg.grid.kind, "grid.kind=stored")
-        raise ValueError(
-            f"the evaluation would hold about {size_text(cost.rollout_memory_bytes)} ({cost.trajectories} trajectories "
-            f"× {cost.frames} frames × {cost.points} points"
-            f"{f' × {cost.field_dim} components' if cost.field_dim > 1 else ''}: {span}, {grid}, "
-            f"max_trajectories={_shown(cfg.get('max_trajectories'))}, figures={_shown(cfg.figures)}), over the limit "
-            f"of {size_text(limit)} ({where}): lower horizon or max_trajectories, raise dt, evaluate on fewer points "
-            f"(grid.resolution, grid.n_points or grid.kind=stored) or keep fewer figures; or raise "
-            f"max_memory_gb if the machine has the memory")
-    if cost.long_memory_bytes > limit:
-        raise ValueError(f"long_steps={_shown(cfg.long_steps)} × long_trajectories={cost.long_trajectories} would "
-                         f"hold about {size_text(cost.long_memory_bytes)} of recorded states and energies, over the "
-                         f"limit of {size_text(limit)} ({where}): lower long_steps or long_trajectories, or raise max_memory_gb "
-                         f"if the machine has the memory")
 
 
 def evaluate(cfg: DictConfig) -> dict[str, float]:
     """Evaluate `cfg.ckpt_path`; returns the metrics (also written to metrics.json).
 
-    Unknown keys and bad settings are refused first (:func:`check_settings`); a figure that cannot be drawn is
-    a warning, after metrics.json and run.json are written. Another run in the same output folder at the same
-    time is refused (:mod:`lnf.run_lock`); an earlier run's results there are moved aside before any work
-    (:func:`set_aside_earlier_results`), so the folder never mixes two commands' files.
+    Unknown keys and bad settings are refused first (:func:`lnf.evaluation_settings.check_settings`), work over
+    the time or memory budget before any data are loaded (:func:`lnf.evaluation_settings.check_budget`); a figure
+    that cannot be drawn is a warning, after metrics.json and run.json are written. Another run in the same output
+    folder at the same time is refused (:mod:`lnf.run_lock`); an earlier run's results there are moved aside
+    (``previous/<time>/``) before any rollout, so the folder never mixes two commands' files.
     """
     with run_folder_lock(Path(cfg.paths.output_dir), "python -m lnf.evaluate"):
         return _evaluate(cfg)
-
-
-def trust_setting(cfg: DictConfig) -> list[str]:
-    """``trust=`` as a list of module names: ``trust=mypkg`` (one name) or ``trust=[mypkg, other]``."""
-    value = cfg.get("trust")
-    if value is None or isinstance(value, str):
-        return [value] if value else []
-    if OmegaConf.is_list(value):
-        return [str(v) for v in value]
-    raise ValueError(f"trust must be a module name or a list of them (trust=[mypkg]), got {value!r}")
-
-
-def set_aside_earlier_results(output_dir: Path) -> Optional[Path]:
-    """Move an earlier run's metrics.json, run.json and figures/ in `output_dir` to ``previous/<time>/`` (nothing
-    is deleted), so that a run killed before its end never leaves its files beside another command's."""
-    return set_aside(output_dir, EVALUATION_RESULTS)
-
-
-def in_folder(path: Path, folder: Path) -> bool:
-    """Whether `path` (links resolved) lies inside `folder`."""
-    try:
-        return Path(path).resolve().is_relative_to(Path(folder).resolve())
-    except OSError:
-        return False
-
-
-def evaluation_data(scene: Any, dcfg: DatasetConfig, path: Path, data_dir: Path, on_mismatch: str,
-                    explicit: bool) -> Path:
-    """The generated dataset of a checkpoint's data record, ready to evaluate; returns its path.
-
-    Inside the data folder (``paths.data_dir``: $LNF_DATA_DIR, else $LNF_ROOT/data) `path` is ensured as training
-    does (generated, or regenerated, there). Outside it, nothing is written to `path` (a checkpoint, which may come
-    from anywhere, names it): it is used when it holds an intact lnf dataset of the recorded settings; else (missing,
-    damaged, other settings, or not an lnf dataset at all) the dataset of those settings is generated — or reused —
-    at lnf's own file for them in the data folder, with a warning naming both files."""
-    if in_folder(path, data_dir):
-        ensure_dataset(scene, dcfg, path, on_mismatch=on_mismatch, overwrite_other_settings=not explicit)
-        return path
-    try:
-        return ensure_dataset(scene, dcfg, path, on_mismatch="error", overwrite_other_settings=False, writable=False)
-    except DatasetError as err:
-        from lnf.training.datamodule import default_path
-
-        own = default_path(data_dir, scene, dcfg)
-        log.warning("the checkpoint's data file is not used (%s). It lies outside the data folder %s, and "
-                    "lnf.evaluate writes only inside it (paths.data_dir, $LNF_DATA_DIR): the test trajectories of the "
-                    "checkpoint's data settings are taken from %s there instead (generated if not there yet)",
-                    err, data_dir, own)
-        ensure_dataset(scene, dcfg, own, on_mismatch=on_mismatch)
-        return own
-
-
-def warn_if_changed(path: Path, trained: Optional[str]) -> None:
-    """A warning naming `path` when its content checksum differs from `trained`, the one recorded when the
-    checkpoint was trained on it (nothing when the checkpoint records none)."""
-    if not trained:
-        return
-    now = content_checksum(path)
-    if now != trained:
-        log.warning("%s changed since the checkpoint was trained on it: its content checksum was %s then, it is %s "
-                    "now (the file was replaced or rewritten with other values); the metrics are those of the file as "
-                    "it is now", path, trained, now)
 
 
 def _evaluate(cfg: DictConfig) -> dict[str, float]:
@@ -445,129 +49,24 @@ def _evaluate(cfg: DictConfig) -> dict[str, float]:
         torch.set_num_threads(int(cfg.threads))
     output_dir = Path(cfg.paths.output_dir)
     model = load(cfg.ckpt_path, trust=trust_setting(cfg))  # a checkpoint's own classes run only if trusted
-    scene = model.scene
     choose_dynamics(model, cfg.get("dynamics"), cfg.ckpt_path)
-    data = dict(model.checkpoint.get("data") or {})
-    if not data:
+    record = dict(model.checkpoint.get("data") or {})
+    if not record:
         raise ValueError(f"checkpoint {cfg.ckpt_path} records no data settings; cannot find its test trajectories")
-    check_budget(cfg, *planned_cost(cfg, model, data))  # before any data are loaded or simulated
-    path = Path(data.pop("path"))
-    on_mismatch = data.pop("on_mismatch", "regenerate")
-    explicit = bool(data.pop("explicit_path", False))  # a shared file of another run's settings is not overwritten
-    trained_checksum = data.pop("checksum", None) or model.checkpoint.get("data_checksum")
-    if data.get("source") == SOURCE_ARRAYS:  # a user's trajectories: verified, never regenerated
-        dcfg = None
-        verify_dataset(path, scene)
-        now, then = stored_generation(path), data.get("generation") or {}
-        changed = sorted(k for k in set(now) | set(then) if now.get(k) != then.get(k))
-        if changed:
-            log.warning("%s was rewritten since the checkpoint was trained on it (%s); evaluating the file as it is now",
-                        path, "; ".join(f"{k}: trained on {then.get(k)!r}, now {now.get(k)!r}" for k in changed))
-    else:
-        dcfg = DatasetConfig.from_mapping(data)
-        path = evaluation_data(scene, dcfg, path, Path(cfg.paths.data_dir), on_mismatch, explicit)
-    warn_if_changed(path, trained_checksum)
-    split = load_split(path, cfg.split, scene=scene, cfg=dcfg)
-    ensure_code_range(model, path, scene, dcfg)
+    check_budget(cfg, *planned_cost(cfg, model, record))  # before any data are loaded or simulated
+    path, dcfg = checkpoint_data(model, Path(cfg.paths.data_dir))
+    split = load_split(path, cfg.split, scene=model.scene, cfg=dcfg)
+    ensure_code_range(model, path, dcfg)
 
-    n = len(split) if cfg.max_trajectories is None else min(int(cfg.max_trajectories), len(split))
-    dt = float(cfg.dt) if cfg.dt is not None else float(split.times[1] - split.times[0])
-    horizon = float(cfg.horizon) if cfg.horizon is not None else float(split.times[-1] + split.times[1] - split.times[0])
-    # a whole number ≥ 2 of dt, train_horizon within the horizon (neither set: the data's own frames)
-    frames = rollout_frames(cfg, dt, horizon) if cfg.dt is not None or cfg.horizon is not None else len(split.times)
-    if cfg.dt is None and cfg.horizon is None and cfg.train_horizon is not None:
-        rollout_frames(cfg, dt, dt * frames)  # only train_horizon to check
-    check_budget(cfg, *planned_cost(cfg, model, data, split))  # the data's own sizes, before simulating
-    train_horizon = float(cfg.train_horizon) if cfg.train_horizon is not None else float(split.times[split.train_times])
-    times = dt * np.arange(frames)
-    if not times[-1] >= train_horizon - 1e-9 * max(1.0, train_horizon):
-        (log.warning if cfg.train_horizon is not None else log.info)(
-            "train_horizon=%s (%s) comes after the last frame, t = %g s: the metrics have no extrapolation window",
-            _shown(cfg.train_horizon) if cfg.train_horizon is not None else f"{train_horizon:g}",
-            "as set" if cfg.train_horizon is not None else "the data's training horizon", times[-1])
-    stored_times = len(times) == len(split.times) and np.allclose(times, split.times)
-    has_states = split.states.shape[-1] > 0
-    if (not stored_times or cfg.get("initial_states") is not None) and \
-            not (scene.capabilities()["simulator"] and has_states):
-        asked = ", ".join(f"{k}={cfg.get(k)}" for k in ("dt", "horizon", "initial_states") if cfg.get(k) is not None)
-        lacking = f"{path} holds no full-order states" if not has_states else f"scene {scene.name!r} has no simulate()"
-        raise ValueError(f"{asked}: other times or initial states need a full-order simulator, and {lacking}; "
-                         f"evaluation is limited to the stored times ({len(split.times)} samples at dt = "
-                         f"{split.times[1] - split.times[0]:g} s): leave dt, horizon and initial_states unset")
-    if cfg.grid.kind != "stored" and not (scene.provides("fields") and has_states):
-        lacking = f"{path} holds no full-order states" if not has_states else f"scene {scene.name!r} has no fields()"
-        raise ValueError(f"grid.kind={cfg.grid.kind}: fields on other points need the scene's fields() of full-order "
-                         f"states, and {lacking}; use grid.kind=stored (the points the trajectories were stored on)")
-    initial = None
-    if cfg.get("initial_states") is not None:
-        initial = read_initial_states(cfg.initial_states)
-        if initial.ndim != 2 or initial.shape[1] != split.states.shape[-1] or not np.isfinite(initial).all():
-            got = repr(initial.tolist()) if initial.size <= 16 else f"an array of shape {initial.shape}"  # e.g. a mesh's state
-            raise ValueError(f"initial_states must be a list of finite full-order states, each of "
-                             f"{split.states.shape[-1]} numbers {tuple(scene.state_names)}, got {got}")
-        stored_times, n = False, len(initial)
-    points, grid_shape = evaluation_points(cfg.grid, scene.bounds, split.fine_points)
-    use_stored = stored_times and cfg.grid.kind == "stored"
-    quadrature = build(OmegaConf.to_container(cfg.quadrature, resolve=True)) if cfg.get("quadrature") else None
-    integrator = OmegaConf.to_container(cfg.integrator, resolve=True)
-    # what it will cost, before anything is simulated or rolled out
-    cost = evaluation_cost(n, len(times), len(points), scene.field_dim, keep_fields=int(cfg.figures),
-                           quadrature_points=quadrature_size(model, quadrature),
-                           trained_quadrature_points=quadrature_size(model),
-                           substeps=int(integrator.get("substeps", 1) or 1), state_dim=split.states.shape[-1],
-                           latent_dim=model.latent_dim, body_dim=len(scene.bounds),
-                           long_trajectories=min(int(cfg.long_trajectories), n) if int(cfg.long_steps) > 0 else 0,
-                           long_steps=int(cfg.long_steps))
-    log.info("evaluating %s", cost.describe())
-    if int(cfg.long_steps) > 0:
-        log.info("then the long-horizon energy check: %d trajectories × %d steps (%d integration steps with "
-                 "integrator.substeps=%d)", cost.long_trajectories, cost.long_steps, cost.long_rollout_steps,
-                 cost.substeps)
-    set_aside_earlier_results(output_dir)
-    write_json_atomic(output_dir / "run.json", run_metadata(cfg))  # provenance first: a killed run says what it was
-    if stored_times:
-        states = split.states[:n]
-    else:
-        log.info("simulating the ground truth of %d trajectories × %d samples (dt = %g s)", n, len(times), dt)
-        states = simulated_ground_truth(scene, initial if initial is not None else split.states[:n, 0], times,
-                                        path.parent / GROUND_TRUTH_FOLDER)
+    def provenance() -> None:  # a killed run says what it was, and never sits beside an earlier run's results
+        set_aside(output_dir, EVALUATION_RESULTS)  # moved to previous/<time>/, nothing deleted
+        write_json_atomic(output_dir / "run.json", run_metadata(cfg))
 
-    start = time.perf_counter()
-    own_states = cfg.get("initial_states") is None
-    reference = stored_reference(split, scene, n) if use_stored else {}
-    if own_states and split.controls is not None:
-        reference["controls"] = split.controls[:n]
-    if cfg.grid.kind == "stored" and split.weights is not None:
-        reference["weights"] = split.weights
-    result = evaluate_rollouts(model, states, times, points, train_horizon,
-                               true_fields=split.fields[:n] if use_stored else None,
-                               true_velocities=split.velocities[:n] if use_stored else None,
-                               integrator=integrator, quadrature=quadrature, grid_shape=grid_shape,
-                               max_reduction_points=cfg.max_reduction_points, label=f"{cfg.split} rollout",
-                               keep_fields=int(cfg.figures), progress=True, decoding=str(cfg.get("decoding", "auto")), **reference)
-    metrics = dict(result.metrics)
-    if int(cfg.long_steps) > 0:
-        k = min(int(cfg.long_trajectories), len(states))
-        stored_start = own_states and cfg.grid.kind == "stored"  # the stored fields at t0 start the check
-        metrics.update(long_horizon_energy(
-            model, states[:k, 0], points, dt, int(cfg.long_steps), integrator=integrator, quadrature=quadrature,
-            grid_shape=grid_shape, max_reduction_points=cfg.max_reduction_points,
-            initial_fields=(split.fields[:k, 0], split.velocities[:k, 0]) if stored_start else None,
-            controls=split.controls[:k] if own_states and split.controls is not None else None, progress=True))
-    metrics["evaluation_seconds"] = time.perf_counter() - start
-    write_json_atomic(output_dir / "metrics.json", metrics)
-    for finding in read_error_budget(metrics, clamped=is_clamped(model)):
-        log.warning("%s rollout: %s", cfg.split, finding)
-    write_json_atomic(output_dir / "run.json", run_metadata(cfg))
-    if int(cfg.figures) > 0:
-        try:  # the results are written: a figure that fails (a plotting backend, a full disk) must not cost them
-            save_evaluation_figures(result, scene, grid_shape, train_horizon, output_dir / "figures", cfg.split,
-                                    int(cfg.figures), integrator=integrator)
-        except Exception as err:  # noqa: BLE001
-            log.warning("could not draw Figure 3: %s: %s (metrics.json and run.json are written in %s)",
-                        type(err).__name__, err, output_dir)
-    print_summary(metrics, title=f"{cfg.split} metrics of {cfg.ckpt_path}")
-    return metrics
+    data, spec = rollout_request(cfg, model, split, path, provenance)
+    report = evaluate_model(model, data, spec)
+    write_report(report, output_dir, logger=log)
+    print_summary(report.metrics, title=f"{cfg.split} metrics of {cfg.ckpt_path}")
+    return report.metrics
 
 
 @hydra.main(version_base="1.3", config_path="pkg://lnf.conf", config_name="evaluate")

@@ -6,7 +6,6 @@ points; compare with the true fields, with the projected reference q̃_ref(t) = 
 """
 from __future__ import annotations
 
-import inspect
 import logging
 import time
 from dataclasses import dataclass, field
@@ -76,37 +75,6 @@ def reference_fields(scene, states: np.ndarray, points: np.ndarray, label: str) 
                          f"points and times (lnf.evaluate grid.kind=stored, without dt=, horizon= or "
                          f"initial_states=)")
     return scene.fields(states, points)
-
-
-def _frame_sq(x: np.ndarray, weights: np.ndarray) -> np.ndarray:
-    """Σ_j w_j ‖x_j‖² per frame of x (F, N, A): (F,) (lnf.metrics' weighted sum, one frame at a time)."""
-    return np.einsum("fja,j->f", x * x, weights)
-
-
-def _rel_l2_metrics(name: str, err: np.ndarray, ref: np.ndarray, times: np.ndarray,
-                    train_horizon: float) -> dict[str, float]:
-    """:func:`lnf.metrics.field_metrics` from the per-frame weighted squared errors `err` and norms `ref` (n, T)."""
-    out = {}
-    for window, mask in M.time_windows(times, train_horizon).items():
-        if mask.any():
-            rel = np.sqrt(err[:, mask].sum(-1) / np.maximum(ref[:, mask].sum(-1), np.finfo(np.float64).tiny))
-            for stat, value in M.summarize(rel).items():
-                out[f"{name}/{window}/{stat}"] = value
-    return out
-
-
-_VPT_THRESHOLD = inspect.signature(M.valid_prediction_time).parameters["threshold"].default
-
-
-def _valid_prediction_time(err: np.ndarray, ref: np.ndarray, weights: np.ndarray, times: np.ndarray,
-                           threshold: float = _VPT_THRESHOLD) -> np.ndarray:
-    """:func:`lnf.metrics.valid_prediction_time` from the per-frame sums `err` and `ref` (n, T): (n,)."""
-    frame = err / weights.sum()
-    scale = (ref / weights.sum()).mean(-1, keepdims=True)
-    bad = ~(frame / np.maximum(scale, np.finfo(np.float64).tiny) <= threshold)
-    horizon = times[-1] + (times[-1] - times[-2] if len(times) > 1 else 0.0)
-    first = np.where(bad.any(-1), bad.argmax(-1), -1)
-    return np.where(first >= 0, times[np.clip(first, 0, None)], horizon)
 
 
 def _may_tabulate(model: ReducedModel, decoding: str) -> bool:
@@ -323,9 +291,9 @@ def evaluate_rollouts(
                 proj[c0 - k0:c1 - k0] = decode(q_ref[c0:c1])
                 advance(c1 - c0)
             pred_np, proj_np = pred.double().cpu().numpy(), proj.double().cpu().numpy()
-            err[k0:k1] = _frame_sq(pred_np - truth, weights)
-            proj_err[k0:k1] = _frame_sq(proj_np - truth, weights)
-            ref[k0:k1] = _frame_sq(truth, weights)
+            err[k0:k1] = M.frame_sq(pred_np - truth, weights)
+            proj_err[k0:k1] = M.frame_sq(proj_np - truth, weights)
+            ref[k0:k1] = M.frame_sq(truth, weights)
             for i in range(k0 // T, min((k1 - 1) // T + 1, keep)):  # the kept trajectories' frames in this block
                 a, b = max(k0, i * T), min(k1, (i + 1) * T)
                 pred_kept[i, a - i * T:b - i * T] = pred_np[a - k0:b - k0]
@@ -347,14 +315,14 @@ def evaluate_rollouts(
 
     err, proj_err, ref = err.reshape(n, T), proj_err.reshape(n, T), ref.reshape(n, T)
     metrics: dict[str, float] = {}
-    metrics.update(_rel_l2_metrics("field_rel_l2", err, ref, times, train_horizon))
-    metrics.update(_rel_l2_metrics("projection_rel_l2", proj_err, ref, times, train_horizon))
+    metrics.update(M.field_metrics_from_sums("field_rel_l2", err, ref, times, train_horizon))
+    metrics.update(M.field_metrics_from_sums("projection_rel_l2", proj_err, ref, times, train_horizon))
     q_pred_np = traj.q.double().cpu().numpy()
     q_ref_np = q_ref.reshape(n, T, d).double().cpu().numpy()
     metrics.update(M.latent_rmse(q_pred_np, q_ref_np))
     if true_energies is not None:
         metrics.update(M.energy_metrics(kin + pot, kin_true + pot_true, scene.energy_scale))
-    vpt = _valid_prediction_time(err, ref, weights, times)
+    vpt = M.valid_prediction_time_from_sums(err, ref, float(weights.sum()), times)
     metrics.update({f"vpt/{k}": v for k, v in M.summarize(vpt).items()})
     metrics["vpt/median"] = float(np.median(vpt))
     metrics["vpt/min"] = float(np.min(vpt))

@@ -2,7 +2,10 @@
 from __future__ import annotations
 
 import logging
+import math
+import os
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Optional
 
 import torch
@@ -10,8 +13,6 @@ from torch import Tensor
 
 from lnf.reduced_model import ReducedModel
 from lnf.quadrature import Quadrature, QuadratureRule
-
-log = logging.getLogger("lnf.evaluation")
 
 log = logging.getLogger("lnf.evaluation")
 
@@ -180,3 +181,67 @@ def chunked_energy(model: ReducedModel, q: Tensor, v: Tensor, quadrature: "Quadr
         return model.energy(q, v, quadrature)
     parts = [model.energy(q[i:i + per], v[i:i + per], quadrature) for i in range(0, q.shape[0], per)]
     return torch.cat([k for k, _ in parts]), torch.cat([u for _, u in parts])
+
+
+MEMORY_ENV = "LNF_MAX_MEMORY_GB"  # the memory lnf.evaluate may use [GB], where max_memory_gb is null
+GB = 2 ** 30
+
+
+def _meminfo_available() -> Optional[int]:
+    """MemAvailable of /proc/meminfo [bytes] (Linux), None elsewhere."""
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemAvailable:"):
+                return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return None
+
+
+def _cgroup_room() -> Optional[int]:
+    """Bytes left under this process's cgroup memory limit (v2 memory.max, v1 limit_in_bytes), None without one."""
+    for limit, usage in (("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory.current"),
+                         ("/sys/fs/cgroup/memory/memory.limit_in_bytes", "/sys/fs/cgroup/memory/memory.usage_in_bytes")):
+        try:
+            text = Path(limit).read_text().strip()
+            if text == "max" or int(text) >= 2 ** 60:  # no limit
+                continue
+            return max(int(text) - int(Path(usage).read_text().strip()), 0)
+        except (OSError, ValueError):
+            continue
+    return None
+
+
+def available_memory() -> tuple[Optional[int], str]:
+    """The memory [bytes] this process may still allocate, and where the figure comes from: MemAvailable of
+    /proc/meminfo (lowered to the room under a cgroup memory limit), else os.sysconf's available pages (physical
+    pages where the system has no count of available ones); (None, why) where none can be read."""
+    found = [(v, where) for v, where in ((_meminfo_available(), "MemAvailable of /proc/meminfo"),
+                                         (_cgroup_room(), "the room under the cgroup memory limit")) if v is not None]
+    if found:
+        return min(found)
+    for pages, where in (("SC_AVPHYS_PAGES", "available"), ("SC_PHYS_PAGES", "physical")):
+        try:
+            return int(os.sysconf(pages)) * int(os.sysconf("SC_PAGE_SIZE")), f"the machine's {where} memory (os.sysconf)"
+        except (ValueError, OSError, AttributeError):
+            continue
+    return None, "the available memory could not be read"
+
+
+def memory_limit(max_memory_gb: Optional[float] = None) -> tuple[Optional[int], str]:
+    """The memory [bytes] an evaluation may hold and what set it: max_memory_gb, else $LNF_MAX_MEMORY_GB, else the
+    memory available now (:func:`available_memory`; None where it cannot be read)."""
+    if max_memory_gb is not None:
+        return int(float(max_memory_gb) * GB), f"max_memory_gb={max_memory_gb}"
+    env = os.environ.get(MEMORY_ENV, "").strip()
+    if env:
+        try:
+            value = float(env)
+        except ValueError:
+            value = float("nan")
+        if not (math.isfinite(value) and value > 0):
+            raise ValueError(f"${MEMORY_ENV}={env!r} must be a finite number > 0 [GB] (the memory lnf.evaluate may "
+                             f"use); unset it to use the memory available now")
+        return int(value * GB), f"${MEMORY_ENV}={env}"
+    found, where = available_memory()
+    return found, f"the memory available now, {where}; set max_memory_gb=<GB> or ${MEMORY_ENV} to change it"

@@ -1,6 +1,7 @@
 """Atomic writes through temporaries (``{name}.tmp-…-{pid}``), and telling a killed writer's leftovers from a live one's."""
 from __future__ import annotations
 
+import json
 import os
 from pathlib import Path
 from typing import Any, Callable
@@ -43,3 +44,8 @@ def write_text_atomic(path: "str | Path", text: str) -> Path:
 def write_bytes_atomic(path: "str | Path", data: bytes) -> Path:
     """`data` written as :func:`write_text_atomic` writes text. Returns the path."""
     return _replace_atomically(path, lambda tmp: tmp.write_bytes(data))
+
+
+def write_json_atomic(path: "str | Path", payload: Any) -> Path:
+    """`payload` as indented JSON with sorted keys, written as :func:`write_text_atomic` writes text."""
+    return write_text_atomic(path, json.dumps(payload, indent=2, sort_keys=True))

@@ -21,7 +21,8 @@ from lnf.config_keys import check_known_keys
 from lnf.dynamics_kind import dynamics_kind
 from lnf.model import build_model, dropped_settings
 from lnf.run_lock import EVALUATION_RESULTS, run_folder_lock, set_aside
-from lnf.training.callbacks import RolloutEvaluationCallback, write_json_atomic
+from lnf.tempfiles import write_json_atomic
+from lnf.training.callbacks import RolloutEvaluationCallback
 from lnf.training.console import quiet_console
 from lnf.training.signals import ended_by_sigterm
 from lnf.training.run_checks import (build_scene, check_resumed_scene, check_resumed_settings, check_run_scene,
@@ -160,9 +161,7 @@ def _train(cfg: DictConfig) -> dict[str, float]:
     if hasattr(model, "step_size"):
         metrics["step_size"] = float(model.step_size.detach())
     metrics.update(fit_metrics)
-    if trainer.is_global_zero:
-        write_json_atomic(output_dir / "metrics.json", metrics)
-    evaluation.draw_figures(trainer)  # after the results are written: a figure that fails is a warning
+    evaluation.write_results(trainer, metrics)  # metrics.json, then the figures: a figure that fails is a warning
     if trainer.is_global_zero:
         sentence = budget_sentence(metrics, cfg.trainer.get("max_time"), model.trainable, stop_reason(trainer))
         if metrics.get("stopped_by_time_limit") or metrics.get("stopped_early"):

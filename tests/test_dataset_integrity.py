@@ -428,8 +428,7 @@ def test_a_file_lnf_did_not_write_is_kept_aside_before_regeneration(tmp_path, sc
 
 def test_a_checkpoint_data_path_outside_the_data_folder_is_never_written(tmp_path, scene, shared_file, caplog):
     """A crafted checkpoint's data.path = /tmp/x/victim.txt made lnf.evaluate replace victim.txt with an HDF5 file."""
-    from lnf.evaluate import evaluation_data
-    from lnf.training.datamodule import default_path
+    from lnf.dataset import default_path, evaluation_data
 
     data_dir = tmp_path / "data"
     elsewhere = tmp_path / "x"

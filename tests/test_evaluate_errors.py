@@ -228,8 +228,9 @@ def test_work_that_cannot_finish_is_refused_before_any_data_is_loaded(ckpt, tmp_
     def no_data(*args, **kwargs):
         raise AssertionError("data were loaded or simulated before the budget was checked")
 
-    for name in ("ensure_dataset", "verify_dataset", "load_split", "simulated_ground_truth", "evaluate_rollouts"):
-        monkeypatch.setattr(lnf.evaluate, name, no_data)
+    for name in ("lnf.dataset.reuse.ensure_dataset", "lnf.evaluation_pipeline.verify_dataset", "lnf.evaluate.load_split",
+                 "lnf.evaluation_settings.simulated_ground_truth", "lnf.evaluation_pipeline.evaluate_rollouts"):
+        monkeypatch.setattr(name, no_data)
     with pytest.raises(ValueError, match=match):
         lnf.evaluate.evaluate(eval_cfg(ckpt, overrides, tmp_path))
 
@@ -253,14 +254,15 @@ def test_times_that_do_not_fit_the_data_are_refused_before_any_data_is_loaded(ck
     def no_data(*args, **kwargs):
         raise AssertionError("data were loaded or simulated before the times were checked")
 
-    for name in ("ensure_dataset", "verify_dataset", "load_split", "simulated_ground_truth", "evaluate_rollouts"):
-        monkeypatch.setattr(lnf.evaluate, name, no_data)
+    for name in ("lnf.dataset.reuse.ensure_dataset", "lnf.evaluation_pipeline.verify_dataset", "lnf.evaluate.load_split",
+                 "lnf.evaluation_settings.simulated_ground_truth", "lnf.evaluation_pipeline.evaluate_rollouts"):
+        monkeypatch.setattr(name, no_data)
     with pytest.raises(ValueError, match=match):
         lnf.evaluate.evaluate(eval_cfg(ckpt, overrides, tmp_path))
 
 
 def test_rollout_frames_are_a_whole_number_of_dt_to_rounding():
-    from lnf.evaluate import rollout_frames
+    from lnf.evaluation_settings import rollout_frames
 
     cfg = OmegaConf.create({"dt": None, "horizon": None, "train_horizon": None})
     assert rollout_frames(cfg, 0.1, 1.0) == 10 and rollout_frames(cfg, 0.05, 0.1) == 2  # 1.0/0.1 = 10.000000000000002
@@ -276,8 +278,9 @@ def test_rollout_frames_are_a_whole_number_of_dt_to_rounding():
 
 def test_memory_limit_from_the_environment_and_the_machine(ckpt, tmp_path, monkeypatch):
     import lnf.evaluate
+    import lnf.evaluation_cost
 
-    found, where = lnf.evaluate.available_memory()  # read portably: /proc/meminfo, a cgroup limit, os.sysconf
+    found, where = lnf.evaluation_cost.available_memory()  # read portably: /proc/meminfo, a cgroup limit, os.sysconf
     assert found is None or found > 0, where
     monkeypatch.setenv("LNF_MAX_MEMORY_GB", "0.001")
     with pytest.raises(ValueError, match=r"over the limit of 1.0 MB \(\$LNF_MAX_MEMORY_GB=0.001\)"):
@@ -491,7 +494,7 @@ def test_failing_figure_keeps_metrics_and_run_record(ckpt, tmp_path, monkeypatch
     def broken(*args, **kwargs):
         raise RuntimeError("no display for matplotlib")
 
-    monkeypatch.setattr(lnf.evaluate, "save_evaluation_figures", broken)
+    monkeypatch.setattr("lnf.evaluation_pipeline.save_evaluation_figures", broken)
     cfg = compose_config("evaluate", [f"ckpt_path={ckpt}", "figures=1", "max_trajectories=1"], tmp_path)
     with caplog.at_level(logging.WARNING, logger="lnf.evaluate"):
         metrics = lnf.evaluate.evaluate(cfg)

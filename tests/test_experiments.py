@@ -718,8 +718,8 @@ def test_a_sweep_run_again_with_another_command_keeps_the_old_results(tmp_path, 
         log.write_text("ok\n")
         return 0
 
-    monkeypatch.setattr(studylib, "run_in_worker", fake_worker)
-    monkeypatch.setattr(studylib, "collect", lambda folder, sweep, label=None: [])
+    monkeypatch.setattr(studylib.study, "run_in_worker", fake_worker)
+    monkeypatch.setattr(studylib.study, "collect", lambda folder, sweep, label=None: [])
     study = studylib.Study(name="x", scene="pendulum", mode="smoke", out=tmp_path, threads=1)
     study.multirun("sweep", ["model.width=8"])
     (tmp_path / "sweep" / "0" / "mine.txt").write_text("a user's file")

@@ -566,7 +566,7 @@ def test_evaluation_figures_name_the_integrator_and_time_step(data, tmp_path, mo
     from types import SimpleNamespace
 
     from lnf.evaluation import RolloutEvaluation
-    from lnf.training.callbacks import save_evaluation_figures
+    from lnf.evaluation_pipeline import save_evaluation_figures
 
     n = 2
     result = RolloutEvaluation(

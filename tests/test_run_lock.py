@@ -88,7 +88,7 @@ def test_an_evaluation_sets_earlier_results_aside_and_writes_its_provenance_firs
     def killed(*args, **kwargs):
         raise KeyboardInterrupt  # what a kill during the rollouts leaves
 
-    monkeypatch.setattr(evaluate_module, "evaluate_rollouts", killed)
+    monkeypatch.setattr("lnf.evaluation_pipeline.evaluate_rollouts", killed)
     with pytest.raises(KeyboardInterrupt):
         evaluate_module.evaluate(ecfg)
     assert not (out / "metrics.json").exists()

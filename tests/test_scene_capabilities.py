@@ -177,8 +177,8 @@ def test_a_scene_overrides_its_declarations_and_the_studies_follow():
 # ---------------------------------------------------------------------------------------------------------
 # no study names a built-in scene
 # ---------------------------------------------------------------------------------------------------------
-STUDIES = ("studylib.py", "stability.py", "pareto.py", "cost_scaling.py", "sparse_noisy.py", "model_size.py",
-           "roofline.py")
+STUDIES = ("studylib/study.py", "studylib/jobs.py", "studylib/results.py", "studylib/charts.py", "studylib/tables.py",
+           "stability.py", "pareto.py", "cost_scaling.py", "sparse_noisy.py", "model_size.py", "roofline.py")
 _NAME = re.compile(r"(?<![A-Za-z0-9])(" + "|".join(sorted(EXPERIMENTS, key=len, reverse=True)) + r")(?![A-Za-z0-9])",
                    re.IGNORECASE)
 

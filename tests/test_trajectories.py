@@ -378,7 +378,7 @@ def test_a_file_replaced_while_in_use_is_refused_and_named_by_evaluate(tmp_path,
     import logging
     import os
 
-    from lnf.evaluate import warn_if_changed
+    from lnf.dataset import warn_if_changed
     from lnf.training.datamodule import SnapshotDataModule
 
     scene, rng = LiftedPendulum(), np.random.default_rng(0)

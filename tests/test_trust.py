@@ -116,7 +116,7 @@ def test_evaluate_reads_trust_as_module_names_never_as_characters(value, expecte
     """`lnf.evaluate trust=mypkg` once became ['m', 'y', ...]: every one-letter module was trusted."""
     from omegaconf import OmegaConf
 
-    from lnf.evaluate import trust_setting
+    from lnf.evaluation_settings import trust_setting
 
     assert trust_setting(OmegaConf.create({"trust": value})) == expected
     with pytest.raises(ValueError, match="trust must be a module name"):

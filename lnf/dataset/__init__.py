@@ -60,7 +60,7 @@ from lnf.dataset.verify import check_points, content_checksum, dataset_keys, flo
 from lnf.dataset.generate import (
     GROUND_TRUTH_FOLDER, SIMULATION_CHUNK, WORKERS_ENV, _simulate, atomic_h5, generate_dataset,
     simulated_ground_truth, simulation_chunks, simulation_workers, write_root_attributes)
-from lnf.dataset.reuse import ensure_dataset, not_lnf_dataset
+from lnf.dataset.reuse import default_path, ensure_dataset, evaluation_data, not_lnf_dataset, warn_if_changed
 from lnf.dataset.load import (
     TrajectorySplit, check_scene_fits, dataset_source, load_split, observed_index, stored_generation, verify_dataset)
 
@@ -69,7 +69,8 @@ __all__ = [
     "DAMAGED_SUFFIX", "DatasetConfig", "DatasetError", "ERROR_HINT", "FIELD_KEYS", "FIX_HINT", "FORMAT_VERSION",
     "GROUND_TRUTH_FOLDER", "LOAD_HINT", "MANIFEST_ATTR", "OPTIONAL_SPLIT_KEYS", "ROOT_ATTRIBUTES",
     "SIMULATION_CHUNK", "SOURCE_ARRAYS", "SPLITS", "SPLIT_KEYS", "TrajectorySplit", "WORKERS_ENV", "atomic_h5",
-    "check_points", "check_scene_fits", "content_checksum", "dataset_keys", "dataset_source", "ensure_dataset",
+    "check_points", "check_scene_fits", "content_checksum", "dataset_keys", "dataset_source", "default_path",
+    "ensure_dataset", "evaluation_data",
     "float32_collisions", "generate_dataset", "generation_attributes", "load_split", "log", "not_lnf_dataset",
     "observed_index", "scene_record", "simulated_ground_truth", "simulation_chunks", "simulation_workers",
-    "stored_generation", "verify_dataset", "write_root_attributes"]
+    "stored_generation", "verify_dataset", "warn_if_changed", "write_root_attributes"]

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import json
 import os
 import shutil
@@ -16,7 +17,7 @@ from lnf.dataset.format import DAMAGED_SUFFIX, DatasetError, ERROR_HINT, SOURCE_
 from lnf.dataset.generate import generate_dataset
 from lnf.dataset.load import dataset_source, verify_dataset
 from lnf.dataset.verify import (
-    _check_manifest, _check_structure, _open, _read_attributes, _verify_all, _verify_attributes)
+    content_checksum, _check_manifest, _check_structure, _open, _read_attributes, _verify_all, _verify_attributes)
 
 
 def _file_problem(path: Path, expected: dict[str, Any]) -> Optional[tuple[str, str]]:
@@ -153,3 +154,51 @@ def _kept_aside(path: Path) -> Iterator[Path]:
         raise
 
 
+def default_path(data_dir: str | Path, scene: Any, cfg: DatasetConfig) -> Path:
+    """``{data_dir}/{scene.name}-{hash of the generation attributes}.h5``: one file per parameter set."""
+    attrs = json.dumps(generation_attributes(scene, cfg), sort_keys=True, default=str)
+    return Path(data_dir) / f"{scene.name}-{hashlib.sha1(attrs.encode()).hexdigest()[:10]}.h5"
+
+
+def in_folder(path: Path, folder: Path) -> bool:
+    """Whether `path` (links resolved) lies inside `folder`."""
+    try:
+        return Path(path).resolve().is_relative_to(Path(folder).resolve())
+    except OSError:
+        return False
+
+
+def evaluation_data(scene: Any, dcfg: DatasetConfig, path: Path, data_dir: Path, on_mismatch: str,
+                    explicit: bool) -> Path:
+    """The generated dataset of a checkpoint's data record, ready to evaluate; returns its path.
+
+    Inside the data folder (``paths.data_dir``: $LNF_DATA_DIR, else $LNF_ROOT/data) `path` is ensured as training
+    does (generated, or regenerated, there). Outside it, nothing is written to `path` (a checkpoint, which may come
+    from anywhere, names it): it is used when it holds an intact lnf dataset of the recorded settings; else (missing,
+    damaged, other settings, or not an lnf dataset at all) the dataset of those settings is generated — or reused —
+    at lnf's own file for them in the data folder, with a warning naming both files."""
+    if in_folder(path, data_dir):
+        ensure_dataset(scene, dcfg, path, on_mismatch=on_mismatch, overwrite_other_settings=not explicit)
+        return path
+    try:
+        return ensure_dataset(scene, dcfg, path, on_mismatch="error", overwrite_other_settings=False, writable=False)
+    except DatasetError as err:
+        own = default_path(data_dir, scene, dcfg)
+        log.warning("the checkpoint's data file is not used (%s). It lies outside the data folder %s, and "
+                    "lnf.evaluate writes only inside it (paths.data_dir, $LNF_DATA_DIR): the test trajectories of the "
+                    "checkpoint's data settings are taken from %s there instead (generated if not there yet)",
+                    err, data_dir, own)
+        ensure_dataset(scene, dcfg, own, on_mismatch=on_mismatch)
+        return own
+
+
+def warn_if_changed(path: Path, trained: Optional[str]) -> None:
+    """A warning naming `path` when its content checksum differs from `trained`, the one recorded when the
+    checkpoint was trained on it (nothing when the checkpoint records none)."""
+    if not trained:
+        return
+    now = content_checksum(path)
+    if now != trained:
+        log.warning("%s changed since the checkpoint was trained on it: its content checksum was %s then, it is %s "
+                    "now (the file was replaced or rewritten with other values); the metrics are those of the file as "
+                    "it is now", path, trained, now)

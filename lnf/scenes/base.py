@@ -215,7 +215,7 @@ class Scene:
         return self.provides("controls") and not self.is_conservative
 
     def baselines(self) -> dict[str, bool]:
-        """Which baseline methods of the studies (experiments/studylib.py METHODS) can run this scene, by name:
+        """Which baseline methods of the studies (METHODS of experiments/studylib/study.py) can run this scene, by name:
 
         - ``full_order``: the nodal full-order model (:class:`lnf.baselines.FullOrderModel`, ω0 w q̈ = −∂V/∂q on a
           grid of nodes) has only the flat kinetic energy ½∫ω0‖q̇‖², no ∇_X q and no external forces, and

@@ -1,8 +1,6 @@
 """DataModule: generates/validates the HDF5 dataset and serves masked coarse snapshots."""
 from __future__ import annotations
 
-import hashlib
-import json
 import logging
 import multiprocessing as mp
 import os
@@ -16,7 +14,7 @@ import torch
 from torch.utils.data import DataLoader, Dataset
 
 from lnf.dataset import (SOURCE_ARRAYS, DatasetConfig, DatasetError, TrajectorySplit, content_checksum, dataset_source,
-                         ensure_dataset, generation_attributes, load_split, observed_index, stored_generation)
+                         default_path, ensure_dataset, load_split, observed_index, stored_generation)
 from lnf.model import build
 from lnf.scenes.base import Scene
 from lnf.training.batch import SnapshotBatch
@@ -160,12 +158,6 @@ def worker_context() -> Optional[str]:
     if method in (None, "fork", "spawn", "forkserver"):
         return None
     return "fork" if "fork" in mp.get_all_start_methods() else "spawn"
-
-
-def default_path(data_dir: str | Path, scene: Scene, cfg: DatasetConfig) -> Path:
-    """``{data_dir}/{scene.name}-{hash of the generation attributes}.h5``: one file per parameter set."""
-    attrs = json.dumps(generation_attributes(scene, cfg), sort_keys=True, default=str)
-    return Path(data_dir) / f"{scene.name}-{hashlib.sha1(attrs.encode()).hexdigest()[:10]}.h5"
 
 
 class SnapshotDataModule(pl.LightningDataModule):
