@@ -13,13 +13,10 @@ from typing import Any, Optional
 import hydra
 import lightning.pytorch as pl
 import torch
-from lightning.pytorch.callbacks import LearningRateMonitor, ModelCheckpoint
 from omegaconf import DictConfig, OmegaConf
 
 from lnf.allocator import keep_freed_memory
 from lnf.config_keys import check_known_keys
-from lnf.dynamics_kind import dynamics_kind
-from lnf.model import build_model, dropped_settings
 from lnf.run_lock import EVALUATION_RESULTS, run_folder_lock, set_aside
 from lnf.tempfiles import write_json_atomic
 from lnf.training.callbacks import RolloutEvaluationCallback
@@ -27,14 +24,15 @@ from lnf.training.console import quiet_console
 from lnf.training.signals import ended_by_sigterm
 from lnf.training.run_checks import (build_scene, check_resumed_scene, check_resumed_settings, check_run_scene,
                                      check_settings, scene_needs)
-from lnf.training.run_report import (budget_sentence, build_loggers, fit_latent_dynamics, progress_bar, run_record,
-                                     stop_reason, training_budget, wandb_hints)
-from lnf.training.checkpoints import AtomicCheckpointIO, confine_restored_state, resume_checkpoint
+from lnf.training.run_report import (budget_sentence, fit_latent_dynamics, run_record, stop_reason, training_budget,
+                                     wandb_hints)
+from lnf.training.run_setup import (build_trainer, fit_subspace_first, model_settings, optimized_value,
+                                    provisional_w0, with_chosen_w0)
+from lnf.training.checkpoints import resume_checkpoint
 from lnf.training.datamodule import SnapshotDataModule
 from lnf.training.loggers import finish_wandb_run
 from lnf.training.module import LNFModule
-from lnf.utils import check_config, is_number, print_summary, resolved_config
-from lnf.w0_search import choose_w0, w0_for_span
+from lnf.utils import check_config, print_summary, resolved_config
 
 log = logging.getLogger("lnf.train")
 
@@ -67,19 +65,13 @@ def _train(cfg: DictConfig) -> dict[str, float]:
     scene_spec = _container(cfg.scene)
     scene = build_scene(scene_spec)  # a wrong scene._target_ is named with what is wrong, not Hydra's generic error
     datamodule: SnapshotDataModule = hydra.utils.instantiate(cfg.data, scene=scene, _convert_="all")
-    model_spec = _container(cfg.model)
-    dynamics_spec = _container(cfg.get("dynamics"))
-    if dynamics_spec and dynamics_kind(dynamics_spec).needs_codes:  # the exact pullback is the model's own
-        model_spec["dynamics"] = dynamics_spec
-    dropped = dropped_settings(model_spec)  # each named in a warning
-    model_spec = {k: v for k, v in model_spec.items() if k not in dropped}
+    model_spec = model_settings(_container(cfg.model), _container(cfg.get("dynamics")))
     check_run_scene(scene, scene_needs(model_spec, datamodule))  # before any data are generated or steps taken
     ckpt_file, ckpt = resume_checkpoint(cfg.get("ckpt_path"), output_dir)
     chosen_settings: dict[str, float] = {}
     search_w0 = model_spec.get("w0") == "auto" and ckpt is None  # a resumed run keeps the w0 its checkpoint chose
-    if model_spec.get("w0") == "auto":  # the checks below run on a provisional w0, replaced after the search
-        saved = ((ckpt or {}).get("hyper_parameters") or {}).get("model", {}).get("w0")
-        model_spec["w0"] = saved if is_number(saved) else w0_for_span(scene.bounds, 5.0)
+    if "w0" in model_spec:  # the checks below run on a provisional w0 where it is auto, replaced after the search
+        model_spec["w0"] = provisional_w0(model_spec["w0"], ckpt, scene.bounds)
     module = LNFModule(scene=scene_spec, model=model_spec, quadrature=_container(cfg.quadrature),
                        optimizer=_container(cfg.optimizer), data=datamodule.describe())
     check_settings(cfg, module)
@@ -95,36 +87,10 @@ def _train(cfg: DictConfig) -> dict[str, float]:
     datamodule.prepare_data()  # generates, or verifies every split of a stored file, before the first step
     datamodule.potential_targets = getattr(module.model, "energy_weight", 0.0) > 0  # items carry V for ℓ^E
     datamodule.gradient_targets = getattr(module.model, "gradient_weight", 0.0) > 0  # items carry ∇_X q for ℓ^G
-    fit_info: dict[str, float] = {}
-    if getattr(module.model, "needs_fit", False) and ckpt_file is None:  # e.g. the POD part of model.pod_subspace
-        points, values, _ = datamodule.observations("train")
-        fit_info.update(module.model.fit_subspace(torch.as_tensor(points), torch.as_tensor(values)))
+    fit_info = fit_subspace_first(module, datamodule, resumed=ckpt_file is not None)
     if search_w0:  # model.w0=auto: a short search on the data (lnf/w0_search.py), then training starts afresh
-        hparams, fitted = dict(module.hparams), module.model
-
-        def build(w0: float) -> Any:  # each candidate as training will start it (with the POD part fitted above)
-            candidate = build_model(hparams["scene"], {**hparams["model"], "w0": w0}, hparams["quadrature"])
-            if getattr(candidate, "needs_fit", False):
-                candidate.share_fit(fitted)
-            return candidate
-
-        chosen = choose_w0(build, scene.bounds, datamodule, lr=module.optimizer_cfg["lr"], seed=int(cfg.seed)).chosen
-        chosen_settings["w0"] = chosen  # reported in metrics.json beside the results it gave
-        pl.seed_everything(int(cfg.seed), workers=True)
-        module = LNFModule(**{**hparams, "model": {**hparams["model"], "w0": chosen}})
-        if getattr(module.model, "needs_fit", False):
-            module.model.share_fit(fitted)
-    loggers = build_loggers(cfg, output_dir, resume=ckpt_file is not None)
-    callbacks = [hydra.utils.instantiate(c) for c in (cfg.get("callbacks") or {}).values() if c is not None]
-    if not loggers:  # logger=none: a learning-rate monitor would refuse to start (it has nowhere to log)
-        callbacks = [c for c in callbacks if not isinstance(c, LearningRateMonitor)]
-    for callback in callbacks:  # a resumed checkpoint's state may name only files of the callback's own folder
-        if isinstance(callback, ModelCheckpoint):
-            confine_restored_state(callback)
-    callbacks += progress_bar(cfg, callbacks)
-    trainer: pl.Trainer = hydra.utils.instantiate(
-        cfg.trainer, callbacks=[*callbacks, evaluation], plugins=[AtomicCheckpointIO()],
-        logger=loggers or False)
+        module, chosen_settings["w0"] = with_chosen_w0(module, datamodule, scene.bounds, int(cfg.seed))
+    trainer = build_trainer(cfg, output_dir, evaluation, resumed=ckpt_file is not None)
     if trainer.is_global_zero:  # provenance first, so that a run killed later still says what it was
         write_json_atomic(output_dir / "run.json", run_record(cfg, output_dir / "run.json"))
     for logger in trainer.loggers:
@@ -176,16 +142,6 @@ def _train(cfg: DictConfig) -> dict[str, float]:
 def main(cfg: DictConfig) -> Optional[float]:
     metrics = train(cfg)
     return optimized_value(metrics, cfg.get("optimized_metric"))
-
-
-def optimized_value(metrics: dict[str, float], key: Optional[str]) -> Optional[float]:
-    """metrics[key] for a sweeper; a key the run did not produce is an error, not a silent None."""
-    if key is None:
-        return None
-    if key not in metrics:
-        raise KeyError(f"optimized_metric={key} is not among this run's metrics ({', '.join(sorted(metrics))}); "
-                       f"validation rollout metrics need evaluation.every_n_epochs to divide trainer.max_epochs")
-    return metrics[key]
 
 
 if __name__ == "__main__":
