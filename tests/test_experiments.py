@@ -781,3 +781,11 @@ def test_a_study_killed_mid_job_takes_its_job_worker_with_it(tmp_path):
         parent.wait()
         if worker is not None and not _process_ended(worker):
             os.kill(worker, signal.SIGKILL)
+
+
+def test_stiff_rollouts_names_a_setting_that_is_not_json():
+    """experiments/stiff_rollouts.py refuses an integrator setting it cannot read, naming it, before any data."""
+    from experiments import stiff_rollouts
+
+    with pytest.raises(SystemExit, match=r"--settings 'rk4' is not JSON"):
+        stiff_rollouts.main(["--settings", "rk4"])
