@@ -64,3 +64,18 @@ def test_an_untrained_model_is_pod_galerkin_and_reduces_to_the_projection():
     # unit-variance codes on the training snapshots
     codes = torch.cat([model.reduce(torch.as_tensor(points[i]), torch.as_tensor(values[i])) for i in range(4)])
     assert torch.allclose(codes.std(0), torch.ones(2, dtype=torch.float64), rtol=0.2)
+
+
+def test_the_subspace_jet_runs_under_torch_func_with_points_wrapped_by_it():
+    """The tabulated pullback differentiates M̃ with torch.func.jvp, where ``points.to(codes)`` wraps the points:
+    the Legendre basis (evaluated in NumPy) is read from the points themselves, and the derivative is Φ·tangent
+    (it failed with 'Cannot access data pointer of Tensor that doesn't have storage')."""
+    torch.manual_seed(0)
+    scene = ElasticCantilever(mesh=(4, 2))
+    linear = LinearEmbedding(scene.bounds, 2, 2, degree=3).double()
+    linear.set_subspace(torch.randn(16, 2, dtype=torch.float64), torch.randn(16, 2, 2, dtype=torch.float64))
+    points = torch.rand(5, 2, dtype=torch.float64) * torch.tensor([1.0, 0.4], dtype=torch.float64)
+    codes, tangent = torch.randn(3, 2, dtype=torch.float64), torch.randn(3, 2, dtype=torch.float64)
+    _, derivative = torch.func.jvp(lambda c: linear(c, points.to(c)), (codes,), (tangent,))
+    J = linear.jet(codes, points, order=1).J
+    torch.testing.assert_close(derivative, torch.einsum("bnai,bi->bna", J, tangent))

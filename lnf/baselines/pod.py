@@ -111,14 +111,31 @@ class LinearEmbedding(nn.Module):
         weights = density.expand(jet.value.shape[:2]) / points.shape[-2]
         return project_velocity(jet.J, weights, values - jet.value)
 
+    @staticmethod
+    def _plain(points: Tensor) -> Tensor:
+        """`points` itself where a torch.func transform wrapped it (``points.to(codes)`` under ``jvp``, as the
+        tabulated pullback's derivatives do): the basis is constant in the codes. A batched (vmapped) set of points,
+        whose unwrapped shape differs, is refused rather than read whole."""
+        from torch._C import _functorch
+
+        plain = points
+        while _functorch.is_functorch_wrapped_tensor(plain):
+            plain = _functorch.get_unwrapped(plain)
+        if plain.shape != points.shape:
+            raise ValueError(f"the POD basis cannot be evaluated on points batched by a torch.func transform "
+                             f"(shape {tuple(points.shape)} inside, {tuple(plain.shape)} outside)")
+        return plain
+
     def _basis(self, points: Tensor, spatial: bool) -> tuple[Tensor, Optional[Tensor]]:
-        try:  # inference tensors have no version counter; a torch.func-wrapped tensor has no data pointer
+        points = self._plain(points)
+        try:  # inference tensors have no version counter
             version = None if points.is_inference() else points._version
             key = (points.data_ptr(), tuple(points.shape), version, points.dtype, spatial)
         except RuntimeError:
             key = None
         if key is None or key not in self._cache:
-            pts = points.detach().double().cpu().numpy()
+            with torch._C._DisableFuncTorch():  # under a transform even detach() would wrap the points again
+                pts = points.detach().double().cpu().numpy()
             B = torch.as_tensor(self.basis.values(pts), dtype=self.mean.dtype, device=self.mean.device)
             dB = (torch.as_tensor(self.basis.gradients(pts), dtype=self.mean.dtype, device=self.mean.device)
                   if spatial else None)
