@@ -515,6 +515,9 @@ def main(argv=None) -> None:
                        help="also sweep the quadrature on this checkpoint (e.g. the default model of the main experiment)")
 
     study, args = S.parse_args("pareto", __doc__, argv, extra)
+    # no long-horizon energy check in the training jobs: no chart or table of this study reads it (energy over long
+    # horizons is stability.py's), and on stiff pullbacks it cost up to an hour per job (POD-Galerkin k >= 5)
+    study.long_check = False
     sweeps(study)
     tabulated_sweeps(study)
     label = {"method": "lnf"}

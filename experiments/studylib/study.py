@@ -53,6 +53,7 @@ class Study:
     #: run the multiruns one after another in one worker process (see :class:`JobWorker`); False: a fresh
     #: `python -m <entry>` process each (--fresh-processes)
     one_process: bool = True
+    long_check: bool = True  # the training jobs' long-horizon energy check (off where a study reads none of it)
     rows: list[dict[str, Any]] = field(default_factory=list)
     started: float = field(default_factory=time.perf_counter)
     _scene: Any = field(default=None, init=False, repr=False, compare=False)
@@ -62,7 +63,11 @@ class Study:
         """Overrides shared by every training job of the study."""
         out = [f"+experiment={self.scene}", *COMMON, f"threads={self.threads}"]
         if self.mode == "smoke":
-            out += SMOKE_DATA + ["evaluation.long_steps=10", "evaluation.long_trajectories=1"]
+            out += SMOKE_DATA
+        if not self.long_check:
+            out.append("evaluation.long_steps=0")
+        elif self.mode == "smoke":
+            out += ["evaluation.long_steps=10", "evaluation.long_trajectories=1"]
         return out
 
     def neural(self) -> list[str]:
