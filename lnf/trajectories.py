@@ -178,7 +178,6 @@ class Trajectories:
         if self.fields.shape[1:3] != (T, N) or n < 1 or self.fields.shape[3] < 1:
             raise DatasetError(f"fields: expected shape (n, T, N, A) = (n, {T}, {N}, A) for {T} times and {N} "
                                f"points, got {self.fields.shape}")
-        A = self.fields.shape[3]
         if self.velocities is None:
             self.velocities = np.gradient(self.fields.astype(np.float64), dt, axis=1, edge_order=2)
             self._velocities_given = False
