@@ -28,6 +28,9 @@ def main(argv: "list[str] | None" = None) -> None:
     p.add_argument("--settings", nargs="*", default=DEFAULT_SETTINGS, help="integrator configs, JSON each")
     p.add_argument("--threads", type=int, default=1)
     args = p.parse_args(argv)
+    for key in ("modes", "trajectories", "threads"):
+        if getattr(args, key) < 1:
+            p.error(f"--{key} must be an integer ≥ 1, got {getattr(args, key)}")
     settings = []
     for text in args.settings:
         try:

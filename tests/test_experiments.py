@@ -787,8 +787,11 @@ def test_a_study_killed_mid_job_takes_its_job_worker_with_it(tmp_path):
 
 
 def test_stiff_rollouts_names_a_setting_that_is_not_json():
-    """experiments/stiff_rollouts.py refuses an integrator setting it cannot read, naming it, before any data."""
+    """experiments/stiff_rollouts.py refuses an integrator setting it cannot read (naming it) and a count below 1,
+    before any data."""
     from experiments import stiff_rollouts
 
     with pytest.raises(SystemExit, match=r"--settings 'rk4' is not JSON"):
         stiff_rollouts.main(["--settings", "rk4"])
+    with pytest.raises(SystemExit):
+        stiff_rollouts.main(["--modes", "0"])
