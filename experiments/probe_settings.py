@@ -23,7 +23,7 @@ import time
 import numpy as np
 import torch
 
-from lnf.evaluation import evaluate_rollouts
+from lnf.evaluation_pipeline import EvaluationData, EvaluationSpec, evaluate_model
 from lnf.model import LagrangianNeuralField
 from lnf.quadrature import GaussLegendre, gauss_legendre_rule, midpoint_grid
 from lnf.scenes import LiftedPendulum
@@ -94,13 +94,19 @@ def main() -> None:
     report: dict[str, float] = {"steps": args.steps, "train_seconds": time.time() - start}
     # the embedding on points drawn uniformly over the whole body (boundary included), not only on grids
     anywhere = rng.uniform(-1.0, 1.0, (4096, 2))
-    ru = evaluate_rollouts(model, test, times, anywhere, 2.5, quadrature=GaussLegendre(8), max_reduction_points=None)
+
+    def evaluate_rollouts(points, quadrature, grid_shape=None, max_reduction_points=None):
+        """The test rollouts on `points` with the reduced dynamics on `quadrature` (through lnf's one pipeline)."""
+        data = EvaluationData(test, times, points, 2.5, grid_shape=grid_shape)
+        spec = EvaluationSpec(quadrature=quadrature, max_reduction_points=max_reduction_points, label="rollout")
+        return evaluate_model(model, data, spec).rollouts
+
+    ru = evaluate_rollouts(anywhere, GaussLegendre(8))
     report["projection_rel_l2_uniform"] = ru.metrics["projection_rel_l2/all/median"]
     report["rollout_rel_l2_uniform_GL8"] = ru.metrics["field_rel_l2/all/median"]
     for res in (32, 64):
         grid = midpoint_grid(res, scene.bounds).numpy()
-        r = evaluate_rollouts(model, test, times, grid, 2.5, quadrature=GaussLegendre(32),
-                              grid_shape=(res, res), max_reduction_points=None)
+        r = evaluate_rollouts(grid, GaussLegendre(32), grid_shape=(res, res))
         report[f"projection_rel_l2_{res}"] = r.metrics["projection_rel_l2/all/median"]
         if res == 64:
             report["rollout_rel_l2_64_GL32"] = r.metrics["field_rel_l2/all/median"]
@@ -110,7 +116,7 @@ def main() -> None:
             err2 = ((r.pred_fields[finite] - r.true_fields[finite]) ** 2).sum((0, 1, 3))
             ring = np.abs(grid).max(-1) > np.abs(coarse).max()
             report["ring_share_of_sq_error"] = float(err2[ring].sum() / err2.sum()) if finite.any() else float("nan")
-            r8 = evaluate_rollouts(model, test, times, grid, 2.5, quadrature=GaussLegendre(8), grid_shape=(res, res))
+            r8 = evaluate_rollouts(grid, GaussLegendre(8), grid_shape=(res, res), max_reduction_points=1024)
             report["rollout_rel_l2_64_GL8"] = r8.metrics["field_rel_l2/all/median"]
             codes = np.linspace(r.q_ref.min(), r.q_ref.max(), 7)
     quad = gauss_legendre_rule(32, scene.bounds)

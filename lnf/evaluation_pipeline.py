@@ -24,23 +24,9 @@ from lnf.evaluation import RolloutEvaluation, evaluate_rollouts, long_horizon_en
 from lnf.integrators import get_integrator
 from lnf.reduced_model import ReducedModel
 from lnf.tempfiles import write_json_atomic
+from lnf.utils import EVALUATION_RULES, require
 
 log = logging.getLogger("lnf.evaluation")
-
-
-def check_count(key: str, value: Any, minimum: int = 0) -> int:
-    """An integer setting ≥ `minimum`, or a ValueError naming ``evaluation.<key>``."""
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or int(value) < minimum:
-        raise ValueError(f"evaluation.{key} must be an integer ≥ {minimum}, got {value!r}")
-    return int(value)
-
-
-def check_positive(key: str, value: Any) -> float:
-    """A finite number > 0, or a ValueError naming ``evaluation.<key>``."""
-    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)) \
-            or not np.isfinite(value) or value <= 0:
-        raise ValueError(f"evaluation.{key} must be a finite number > 0, got {value!r}")
-    return float(value)
 
 
 @dataclass(frozen=True)
@@ -68,13 +54,9 @@ class EvaluationSpec:
     progress: bool = False
 
     def __post_init__(self) -> None:
-        check_count("long_steps", self.long_steps)
-        check_count("long_trajectories", self.long_trajectories, minimum=1)
-        check_count("figures", self.figures)
-        if self.long_dt is not None:
-            check_positive("long_dt", self.long_dt)
-        if self.max_reduction_points is not None:
-            check_count("max_reduction_points", self.max_reduction_points, minimum=1)
+        for key, rule in EVALUATION_RULES.items():
+            require(f"evaluation.{key}", getattr(self, key), rule)
+        require("evaluation.long_dt", self.long_dt, (">", 0, None, "", "", "the data's spacing"))
         check_decoding(self.decoding, "evaluation.decoding")
 
     @property
@@ -150,19 +132,26 @@ def evaluate_model(model: ReducedModel, data: EvaluationData, spec: EvaluationSp
                                max_reduction_points=spec.max_reduction_points, label=spec.rollout_label,
                                true_energies=data.true_energies, controls=data.controls, weights=data.weights,
                                keep_fields=spec.keep_fields, progress=spec.progress, decoding=spec.decoding)
-    metrics = dict(result.metrics)
-    if spec.long_steps > 0:
-        k = min(spec.long_trajectories, len(data.states))
-        fields = data.start_fields if data.start_fields is not None or data.true_fields is None else \
-            (data.true_fields[:, 0], data.true_velocities[:, 0])
-        metrics.update(long_horizon_energy(
-            model, data.states[:k, 0], data.points, spec.long_dt or float(data.times[1] - data.times[0]),
-            spec.long_steps, integrator=spec.integrator, quadrature=spec.quadrature, grid_shape=data.grid_shape,
-            max_reduction_points=spec.max_reduction_points,
-            initial_fields=None if fields is None else tuple(np.asarray(f[:k]) for f in fields),
-            controls=None if data.controls is None else data.controls[:k], progress=spec.progress))
+    metrics = {**result.metrics, **long_horizon_check(model, data, spec)}
     metrics["evaluation_seconds"] = time.perf_counter() - start
     return EvaluationReport(metrics, result, data, spec, model.scene, is_clamped(model))
+
+
+def long_horizon_check(model: ReducedModel, data: EvaluationData, spec: EvaluationSpec) -> dict[str, float]:
+    """The long-horizon energy check of `spec` (``energy_drift_long/*``; {} when ``spec.long_steps`` is 0): the first
+    ``spec.long_trajectories`` trajectories of `data` rolled out ``spec.long_steps`` steps of ``spec.long_dt`` (None:
+    the data's spacing) from their start fields (the true fields at t0 where `data` holds them, else the scene's)."""
+    if spec.long_steps <= 0:
+        return {}
+    k = min(spec.long_trajectories, len(data.states))
+    fields = data.start_fields if data.start_fields is not None or data.true_fields is None else \
+        (data.true_fields[:, 0], data.true_velocities[:, 0])
+    return long_horizon_energy(
+        model, data.states[:k, 0], data.points, spec.long_dt or float(data.times[1] - data.times[0]), spec.long_steps,
+        integrator=spec.integrator, quadrature=spec.quadrature, grid_shape=data.grid_shape,
+        max_reduction_points=spec.max_reduction_points,
+        initial_fields=None if fields is None else tuple(np.asarray(f[:k]) for f in fields),
+        controls=None if data.controls is None else data.controls[:k], progress=spec.progress)
 
 
 def write_report(report: EvaluationReport, output_dir: Path, extra: Optional[dict[str, float]] = None,

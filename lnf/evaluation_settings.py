@@ -23,33 +23,27 @@ from lnf.model import build
 from lnf.quadrature import grid_shape_of, midpoint_grid
 from lnf.trajectories import TIME_TOLERANCE
 from lnf.trust import trusted_modules
-from lnf.utils import check_numbers, is_number
+from lnf.utils import EVALUATION_RULES, check_numbers, is_number, number_problem
 
 log = logging.getLogger("lnf.evaluate")
 GRID_KINDS = ("stored", "uniform", "random")
-
-
-def _number(cfg: DictConfig, key: str, expected: str, positive: bool, null: str = "", unit: str = "s") -> None:
-    """`key` must be a finite number (> 0 if `positive`, else ≥ 0) [`unit`], or null when `null` says what null
-    means."""
-    value = OmegaConf.select(cfg, key)
-    if value is None and null:
-        return
-    if is_number(value) and math.isfinite(value) and (value > 0 if positive else value >= 0):
-        return
-    raise ValueError(f"{key} must be a finite number {'>' if positive else '≥'} 0 [{unit}] ({expected})"
-                     f"{' or null (' + null + ')' if null else ''}, got {value!r}")
-
-
-def _integer(cfg: DictConfig, key: str, minimum: int, expected: str, null: str = "") -> None:
-    """`key` must be an integer ≥ `minimum` (an integral float such as 4.0 passes), or null when `null` is given."""
-    value = OmegaConf.select(cfg, key)
-    if value is None and null:
-        return
-    if is_number(value) and math.isfinite(value) and value == int(value) and value >= minimum:
-        return
-    raise ValueError(f"{key} must be an integer ≥ {minimum} ({expected}){' or null (' + null + ')' if null else ''}, "
-                     f"got {value!r}")
+#: the numbers of conf/evaluate.yaml: (kind, low, high, what, unit, what null means), see lnf.utils.number_problem;
+#: the settings it shares with ``evaluation:`` of conf/train.yaml are lnf.utils.EVALUATION_RULES
+EVALUATE_RULES: dict[str, tuple] = {
+    "dt": (">", 0, None, "the sample spacing of the evaluation", "s", "the data's"),
+    "horizon": (">", 0, None, "how long to roll out", "s", "the data's horizon"),
+    "train_horizon": (">", 0, None, "where extrapolation starts; 0 leaves no time before it", "s",
+                      "the data's training horizon"),
+    "max_trajectories": ("int", 1, None, "how many trajectories of the split to evaluate", "", "all of them"),
+    **EVALUATION_RULES,
+    "threads": ("int", 1, None, "torch CPU threads", "", "torch's default"),
+    "grid.resolution": ("int", 1, None, "points per axis of grid.kind=uniform; below 1 the grid has no points"),
+    "grid.n_points": ("int", 1, None, "points of grid.kind=random; below 1 the grid has no points"),
+    "grid.seed": ("int", 0, None, "the seed of grid.kind=random"),
+    "max_memory_gb": (">", 0, None, "the memory the evaluation may hold", "GB",
+                      f"the memory available now, or ${MEMORY_ENV}"),
+    "max_steps": ("int", 1, None, "the most integration steps of one rollout, the time budget", "", "no limit"),
+}
 
 
 def _shown(value: Any) -> str:
@@ -104,28 +98,16 @@ def check_settings(cfg: DictConfig) -> None:
     trusted_modules(trust_setting(cfg))  # a bad module name is refused here, naming it
     if cfg.get("split") not in SPLITS:
         raise ValueError(f"split must be one of {', '.join(SPLITS)}, got {cfg.get('split')!r}")
-    _number(cfg, "dt", "the sample spacing of the evaluation", True, "the data's")
-    _number(cfg, "horizon", "how long to roll out", True, "the data's horizon")
-    _number(cfg, "train_horizon", "where extrapolation starts; 0 leaves no time before it", True,
-            "the data's training horizon")
+    problems = (number_problem(key, OmegaConf.select(cfg, key), rule) for key, rule in EVALUATE_RULES.items())
+    problem = next((p for p in problems if p), None)
+    if problem:
+        raise ValueError(problem)
     if cfg.get("dt") is not None and cfg.get("horizon") is not None:
         rollout_frames(cfg, float(cfg.dt), float(cfg.horizon))  # a whole number ≥ 2 of dt, before anything is loaded
-    _integer(cfg, "max_trajectories", 1, "how many trajectories of the split to evaluate", "all of them")
-    _integer(cfg, "long_steps", 0, "steps of the long-horizon energy check; 0 skips it")
-    _integer(cfg, "long_trajectories", 1, "trajectories of the long-horizon energy check")
-    _integer(cfg, "figures", 0, "how many trajectories get a Figure 3; 0 draws none")
-    _integer(cfg, "max_reduction_points", 1, "evaluation points that ρ̃ uses", "all of them")
-    _integer(cfg, "threads", 1, "torch CPU threads", "torch's default")
     check_decoding(cfg.get("decoding", "auto"))
     kind = OmegaConf.select(cfg, "grid.kind", default="stored")
     if kind not in GRID_KINDS:
         raise ValueError(f"grid.kind must be 'stored', 'uniform' or 'random', got {kind!r}")
-    _integer(cfg, "grid.resolution", 1, "points per axis of grid.kind=uniform; below 1 the grid has no points")
-    _integer(cfg, "grid.n_points", 1, "points of grid.kind=random; below 1 the grid has no points")
-    _integer(cfg, "grid.seed", 0, "the seed of grid.kind=random")
-    _number(cfg, "max_memory_gb", "the memory the evaluation may hold", True,
-            f"the memory available now, or ${MEMORY_ENV}", unit="GB")
-    _integer(cfg, "max_steps", 1, "the most integration steps of one rollout, the time budget", "no limit")
     check_numbers(cfg)  # every other number (integrator.tol, quadrature.*, dynamics.*, initial_states): finite, in range
 
 

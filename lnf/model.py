@@ -35,6 +35,7 @@ from lnf.reduction import (best_start, project_velocity, projection_loss, pullba
 from lnf.scenes.base import Scene
 from lnf.siren import ModulatedSiren
 from lnf.trust import UnsafeCheckpointError, check_spec_targets, read_weights_only
+from lnf.utils import require
 
 log = logging.getLogger("lnf.model")
 
@@ -227,24 +228,13 @@ class LagrangianNeuralField(ReducedModel):
             raise ValueError(f"model.w0={w0!r}: LagrangianNeuralField takes a number; w0=auto is resolved by "
                              "`python -m lnf.train` (a short search on the data, lnf/w0_search.py) before it builds "
                              "the model, so give the number when building it yourself")
-        if int(reduction_steps) != reduction_steps or reduction_steps < 1:
-            raise ValueError(f"model.reduction_steps (K) must be an integer ≥ 1, got {reduction_steps!r}")
-        if not step_size > 0:
-            raise ValueError(f"model.step_size (α0) must be > 0, got {step_size!r}")
-        if not velocity_weight >= 0:
-            raise ValueError(f"model.velocity_weight must be ≥ 0, got {velocity_weight!r}")
-        self.velocity_weight = float(velocity_weight)
-        if not energy_weight >= 0:
-            raise ValueError(f"model.energy_weight must be ≥ 0, got {energy_weight!r}")
-        self.energy_weight = float(energy_weight)
-        if not gradient_weight >= 0:
-            raise ValueError(f"model.gradient_weight must be ≥ 0, got {gradient_weight!r}")
-        self.gradient_weight = float(gradient_weight)
-        if not mass_condition_weight >= 0:
-            raise ValueError(f"model.mass_condition_weight must be ≥ 0, got {mass_condition_weight!r}")
-        if not mass_condition_max >= 1:
-            raise ValueError(f"model.mass_condition_max must be ≥ 1 (a condition number), got {mass_condition_max!r}")
-        self.mass_condition_weight, self.mass_condition_max = float(mass_condition_weight), float(mass_condition_max)
+        require("model.reduction_steps", reduction_steps)
+        require("model.step_size", step_size)
+        self.velocity_weight = require("model.velocity_weight", velocity_weight)
+        self.energy_weight = require("model.energy_weight", energy_weight)
+        self.gradient_weight = require("model.gradient_weight", gradient_weight)
+        self.mass_condition_weight = require("model.mass_condition_weight", mass_condition_weight)
+        self.mass_condition_max = require("model.mass_condition_max", mass_condition_max)
         self.field = ModulatedSiren(latent_dim=latent_dim, in_dim=scene.body_dim, out_dim=scene.field_dim,
                                     width=width, depth=depth, w0=w0, hyper_width=hyper_width,
                                     hyper_depth=hyper_depth, hyper_init_scale=hyper_init_scale)
@@ -256,10 +246,8 @@ class LagrangianNeuralField(ReducedModel):
             linear = LinearEmbedding(scene.bounds, int(latent_dim), scene.field_dim, pod_degree)
             self.field = SubspacePlusField(linear, self.field)
         self.reduction_steps = int(reduction_steps)
-        if int(reduction_starts) != reduction_starts or reduction_starts < 1:
-            raise ValueError(f"model.reduction_starts must be an integer ≥ 1, got {reduction_starts!r}")
-        if not start_radius > 0:
-            raise ValueError(f"model.start_radius must be > 0, got {start_radius!r}")
+        require("model.reduction_starts", reduction_starts)
+        require("model.start_radius", start_radius)
         self.register_buffer("starts", start_grid(int(latent_dim), int(reduction_starts), float(start_radius)),
                              persistent=False)
         self.log_step_size = nn.Parameter(torch.tensor(math.log(step_size)))

@@ -22,6 +22,7 @@ from typing import Any, Optional
 
 import torch
 from torch import Tensor, nn
+from lnf.utils import NUMBER_RULES, require
 
 
 @dataclass
@@ -117,10 +118,8 @@ class ModulatedSiren(nn.Module):
         for name, value, low in [("latent_dim", latent_dim, 1), ("in_dim", in_dim, 1), ("out_dim", out_dim, 1),
                                  ("width", width, 1), ("depth", depth, 1), ("hyper_width", hyper_width, 1),
                                  ("hyper_depth", hyper_depth, 0)]:
-            if int(value) != value or value < low:
-                raise ValueError(f"model.{name} must be an integer ≥ {low}, got {value!r}")
-        if not w0 > 0:
-            raise ValueError(f"model.w0 must be > 0, got {w0!r}")
+            require(f"model.{name}", value, NUMBER_RULES.get(f"model.{name}", ("int", low, None, "")))
+        require("model.w0", w0, (">", 0, None, "the SIREN frequency"))
         self.latent_dim, self.in_dim, self.out_dim = int(latent_dim), int(in_dim), int(out_dim)
         self.width, self.depth, self.w0 = int(width), int(depth), float(w0)
 

@@ -9,6 +9,7 @@ from importlib import metadata
 from pathlib import Path
 from typing import Any, Optional
 
+import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
 SUMMARY_KEYS = [
@@ -54,6 +55,7 @@ NUMBER_RULES: dict[str, tuple[str, float, Optional[float], str]] = {
     "optimizer.min_lr_ratio": ("≥", 0, 1, "the floor of the cosine schedule, a fraction of lr"),
     "optimizer.energy_warmup_epochs": ("int", 0, None, "epochs without the energy loss"),
     "integrator.substeps": ("int", 1, None, "integration steps per sample"),
+    "integrator.max_substeps": ("int", 1, None, "the most automatic substeps per sample; 1: fixed substeps"),
     "integrator.order": ("int", 2, None, "the order of the integrator"),
     "integrator.tol": (">", 0, None, "the tolerance of the implicit solve"),
     "integrator.max_iter": ("int", 1, None, "iterations of the implicit solve"),
@@ -83,23 +85,40 @@ NUMBER_RULES: dict[str, tuple[str, float, Optional[float], str]] = {
 }
 
 
+#: The evaluation settings that ``evaluation:`` of conf/train.yaml (as ``evaluation.<key>``) and conf/evaluate.yaml
+#: (at its top level) share: one schema, checked by :class:`lnf.evaluation_pipeline.EvaluationSpec` and before any
+#: work by both entry points.
+EVALUATION_RULES: dict[str, tuple] = {
+    "long_steps": ("int", 0, None, "steps of the long-horizon energy check; 0 skips it"),
+    "long_trajectories": ("int", 1, None, "trajectories of the long-horizon energy check"),
+    "figures": ("int", 0, None, "how many trajectories get a Figure 3; 0 draws none"),
+    "max_reduction_points": ("int", 1, None, "evaluation points that ρ̃ uses", "", "all of them"),
+}
+NUMBER_RULES.update({f"evaluation.{key}": rule for key, rule in EVALUATION_RULES.items()})
+NUMBER_RULES.update({f"evaluation.{key}": ("int", low, None, "") for key, low in  # the training's validation rollouts
+                     (("every_n_epochs", 0), ("val_trajectories", 1), ("val_resolution", 1))})
+
 #: settings that also take the word ``auto`` (chosen from the body and the data when the run starts)
 AUTO_SETTINGS = frozenset({"model.w0"})
 
 
 def is_number(value: Any) -> bool:
-    """An int or float, not a bool (a YAML true is no number)."""
-    return isinstance(value, (int, float)) and not isinstance(value, bool)
+    """An int or float (NumPy's too), not a bool (a YAML true is no number)."""
+    return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_))
 
 
 def number_problem(key: str, value: Any, rule: Optional[tuple] = None) -> Optional[str]:
     """What is wrong with the setting `key` = `value` under `rule` (see :data:`NUMBER_RULES`; None: it must only be
-    finite if it is a number), or None if nothing is."""
+    finite if it is a number), or None if nothing is. A rule may add a unit and what null means:
+    ``(kind, low, high, what, unit, null)``; without a null text, null is refused."""
     if rule is None:
         if is_number(value) and not math.isfinite(value):
             return f"{key} must be a finite number, got {value!r}"
         return None
-    kind, low, high, what = rule
+    kind, low, high, what, *more = rule
+    unit, null = (*more, "", "")[:2]
+    if value is None and null:
+        return None
     if value == "auto" and key in AUTO_SETTINGS:
         return None
     low_s, high_s = (str(int(x)) if x is not None and float(x).is_integer() else f"{x}" for x in (low, high))
@@ -111,8 +130,21 @@ def number_problem(key: str, value: Any, rule: Optional[tuple] = None) -> Option
         ok = is_number(value) and math.isfinite(value) and (value > low if kind == ">" else value >= low) \
             and (high is None or value <= high)
         expected = f"a finite number {kind} {low_s}" + (f" and ≤ {high_s}" if high is not None else "")
+    expected += f" [{unit}]" if unit else ""
     expected += " or auto" if key in AUTO_SETTINGS else ""
-    return None if ok else f"{key} must be {expected} ({what}), got {value!r}"
+    expected += f" ({what})" if what else ""
+    expected += f" or null ({null})" if null else ""
+    return None if ok else f"{key} must be {expected}, got {value!r}"
+
+
+def require(key: str, value: Any, rule: Optional[tuple] = None, error: type = ValueError) -> Any:
+    """`value` as an int (rule kind "int") or float, or `error` naming `key`, the range and what it is (`rule`: by
+    default ``NUMBER_RULES[key]``; see :func:`number_problem`). Null passes where the rule says what it means."""
+    rule = NUMBER_RULES[key] if rule is None else rule
+    problem = number_problem(key, value, rule)
+    if problem:
+        raise error(problem)
+    return value if value is None else int(value) if rule[0] == "int" else float(value)
 
 
 def check_numbers(cfg: Any, rules: Optional[dict[str, tuple]] = None, prefix: str = "",

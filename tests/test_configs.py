@@ -112,3 +112,44 @@ def test_the_data_counts_are_checked_with_the_other_numbers(tmp_path):
                                          r"data\.observed_fraction must be a finite number > 0 and ≤ 1 .*got 1.5"):
         check_config(compose_config("train", ["+experiment=pendulum", "data.n_times=1", "data.train_times=1",
                                               "data.observed_fraction=1.5"], tmp_path))
+
+
+def test_one_checker_for_every_number_its_unit_null_and_numpy_types():
+    """lnf.utils.require: the key, the range, what it is, its unit and what null means; NumPy numbers pass, bools
+    and strings do not; the value comes back as an int or a float."""
+    import numpy as np
+
+    from lnf.utils import require
+
+    rule = (">", 0, None, "the sample spacing", "s", "the data's")
+    assert require("dt", None, rule) is None and require("dt", np.float32(0.05), rule) == pytest.approx(0.05)
+    with pytest.raises(ValueError, match=r"^dt must be a finite number > 0 \[s\] \(the sample spacing\) or null "
+                                         r"\(the data's\), got 0$"):
+        require("dt", 0, rule)
+    count = ("int", 1, None, "trajectories")
+    assert require("n", np.int64(3), count) == 3 and type(require("n", 4.0, count)) is int
+    for bad in (True, "3", 2.5, float("nan"), None):
+        with pytest.raises(ValueError, match=r"^n must be an integer ≥ 1 \(trajectories\), got "):
+            require("n", bad, count)
+    with pytest.raises(TypeError, match="model.latent_dim must be an integer ≥ 1"):  # the rule of NUMBER_RULES
+        require("model.latent_dim", 0, error=TypeError)
+
+
+def test_the_evaluation_settings_have_one_schema_in_both_entry_points(tmp_path):
+    """evaluation.<key> of lnf.train and <key> of lnf.evaluate are refused by the same rule, with the same words,
+    before any work; EvaluationSpec refuses them on construction too."""
+    from lnf.evaluation_pipeline import EvaluationSpec
+    from lnf.evaluation_settings import check_settings
+    from lnf.utils import EVALUATION_RULES, check_config
+
+    for key, rule in EVALUATION_RULES.items():
+        bad = rule[1] - 1
+        with pytest.raises(ValueError) as train:
+            check_config(compose_config("train", ["+experiment=pendulum", f"evaluation.{key}={bad}"], tmp_path))
+        with pytest.raises(ValueError) as evaluate:
+            check_settings(compose_config("evaluate", ["ckpt_path=x.ckpt", f"{key}={bad}"], tmp_path))
+        with pytest.raises(ValueError) as spec:
+            EvaluationSpec(**{key: bad})
+        words = f"must be an integer ≥ {rule[1]} ({rule[3]})"
+        assert f"evaluation.{key} {words}" in str(train.value) and f"evaluation.{key} {words}" in str(spec.value)
+        assert str(evaluate.value).startswith(f"{key} {words}")

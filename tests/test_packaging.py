@@ -6,6 +6,7 @@ import os
 import shutil
 import subprocess
 import sys
+import sysconfig
 from importlib.resources import files
 
 import pytest
@@ -160,18 +161,17 @@ def test_lnf_exposes_its_version_consistently():
 def test_a_checkout_on_pythonpath_alone_finds_its_configs(tmp_path):
     """Without any install (the editable finder removed, only PYTHONPATH=<checkout>), `lnf.conf` is the checkout's
     conf/ and Hydra composes the training config from it."""
+    # python -S skips the site module, so no .pth file (the editable install's finder) runs; the installed packages
+    # come from PYTHONPATH, after the checkout
     code = (
-        "import sys\n"
-        "sys.meta_path = [f for f in sys.meta_path if 'editable' not in repr(f).lower()]\n"
-        "sys.path = [p for p in sys.path if 'site-packages' not in p or 'lnf' not in p]\n"
         "import lnf, lnf.conf\n"
         "from hydra import compose, initialize_config_module\n"
         "with initialize_config_module('lnf.conf', version_base=None):\n"
         "    cfg = compose('train')\n"
         "print(lnf.conf.__file__, cfg.model.width)\n"
     )
-    env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    proc = subprocess.run([shutil.which("python") or "python", "-c", code], cwd=tmp_path, env=env, text=True,
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), sysconfig.get_paths()["purelib"]])}
+    proc = subprocess.run([shutil.which("python") or "python", "-S", "-c", code], cwd=tmp_path, env=env, text=True,
                           capture_output=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
     path, width = proc.stdout.split()

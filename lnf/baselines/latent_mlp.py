@@ -17,6 +17,7 @@ from torch import Tensor, nn
 
 from lnf.dynamics_kind import LEARNED
 from lnf.integrators.rk4 import RK4
+from lnf.utils import require
 
 log = logging.getLogger("lnf.latent_mlp")
 
@@ -54,10 +55,8 @@ class LatentMLPDynamics(nn.Module):
         super().__init__()
         for key, value, low in [("width", width, 1), ("depth", depth, 1), ("iterations", iterations, 0),
                                 ("batch_size", batch_size, 1), ("window", window, 1)]:
-            if int(value) != value or value < low:
-                raise ValueError(f"dynamics.{key} must be an integer ≥ {low}, got {value!r}")
-        if not lr > 0:
-            raise ValueError(f"dynamics.lr must be > 0, got {lr!r}")
+            require(f"dynamics.{key}", value)
+        require("dynamics.lr", lr)
         self.latent_dim = int(latent_dim)
         self.iterations, self.lr, self.batch_size, self.window, self.seed = int(iterations), float(lr), int(
             batch_size), int(window), int(seed)

@@ -23,6 +23,7 @@ from lnf.reduced_model import ReducedModel, as_field
 from lnf.reduction import project_velocity
 from lnf.scenes.base import Scene
 from lnf.siren import FieldJet
+from lnf.utils import require
 
 log = logging.getLogger("lnf.pod")
 
@@ -34,8 +35,7 @@ class LegendreBasis:
     """
 
     def __init__(self, bounds: list[list[float]], degree: int) -> None:
-        if int(degree) != degree or degree < 0:
-            raise ValueError(f"model.degree (Legendre degree per axis) must be an integer ≥ 0, got {degree!r}")
+        require("model.degree", degree)
         self.bounds = np.asarray(bounds, dtype=np.float64)
         self.degree = int(degree)
         self.dim = len(self.bounds)
@@ -194,8 +194,7 @@ class PODGalerkin(ReducedModel):
     def __init__(self, scene: Scene, latent_dim: int = 1, degree: int = 12, ridge: float = 1e-12,
                  max_condition: float = 1e3, quadrature: Optional[QuadratureRule] = None) -> None:
         super().__init__(scene, quadrature)
-        if int(latent_dim) != latent_dim or latent_dim < 1:
-            raise ValueError(f"model.latent_dim (number of POD modes) must be an integer ≥ 1, got {latent_dim!r}")
+        require("model.latent_dim", latent_dim, ("int", 1, None, "the number of POD modes"))
         if not ridge >= 0:
             raise ValueError(f"model.ridge must be ≥ 0, got {ridge!r}")
         if not max_condition >= 1:

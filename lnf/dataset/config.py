@@ -2,31 +2,12 @@
 from __future__ import annotations
 
 import json
-import math
 from dataclasses import asdict, dataclass, fields as dataclass_fields
 from pathlib import Path
 from typing import Any, Mapping, Optional
 
-import numpy as np
-
 from lnf.dataset.format import COARSE_GRIDS, DatasetError, ERROR_HINT, FORMAT_VERSION
-
-
-def _as_int(key: str, value: Any, minimum: int) -> int:
-    ok = isinstance(value, (int, np.integer)) and not isinstance(value, (bool, np.bool_))
-    if isinstance(value, float) and value.is_integer():
-        ok, value = True, int(value)
-    if not ok or int(value) < minimum:
-        raise DatasetError(f"data.{key} must be an integer ≥ {minimum}, got {value!r}")
-    return int(value)
-
-
-def _as_float(key: str, value: Any) -> float:
-    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.integer, np.floating)):
-        raise DatasetError(f"data.{key} must be a number, got {value!r}")
-    if not math.isfinite(float(value)):
-        raise DatasetError(f"data.{key} must be finite, got {value!r}")
-    return float(value)
+from lnf.utils import require
 
 
 @dataclass
@@ -61,16 +42,12 @@ class DatasetConfig:
     def __post_init__(self) -> None:
         for key in ("n_train", "n_val", "n_test", "n_times", "train_times", "fine_resolution",
                     "coarse_resolution"):
-            setattr(self, key, _as_int(key, getattr(self, key), 1))
-        self.seed = _as_int("seed", self.seed, 0)
-        self.dt = _as_float("dt", self.dt)
-        self.observed_fraction = _as_float("observed_fraction", self.observed_fraction)
-        if self.dt <= 0:
-            raise DatasetError(f"data.dt must be > 0 [s], got {self.dt!r}")
+            setattr(self, key, require(f"data.{key}", getattr(self, key), ("int", 1, None, ""), DatasetError))
+        self.seed = require("data.seed", self.seed, ("int", 0, None, ""), DatasetError)
+        self.dt = require("data.dt", self.dt, (">", 0, None, "", "s"), DatasetError)
+        self.observed_fraction = require("data.observed_fraction", self.observed_fraction, (">", 0, 1, ""), DatasetError)
         if self.train_times > self.n_times:
             raise DatasetError(f"data.train_times must be ≤ data.n_times = {self.n_times}, got {self.train_times}")
-        if not 0 < self.observed_fraction <= 1:
-            raise DatasetError(f"data.observed_fraction must be in (0, 1], got {self.observed_fraction!r}")
         if self.coarse_grid not in COARSE_GRIDS:
             raise DatasetError(f"data.coarse_grid must be one of {', '.join(COARSE_GRIDS)}, got {self.coarse_grid!r}")
         if self.coarse_grid == "vertices" and self.coarse_resolution < 2:

@@ -7,6 +7,7 @@ from typing import Callable, Optional, Protocol
 
 import torch
 from torch import Tensor
+from lnf.utils import require
 
 
 class Dynamics(Protocol):
@@ -159,14 +160,10 @@ class Integrator:
     stiffness_check_every = 20  # steps between two reads of the fastest frequency (automatic substeps)
 
     def __init__(self, substeps: int = 1, max_abs: float = 1e6, max_substeps: int = 64) -> None:
-        if not isinstance(substeps, (int, float)) or not math.isfinite(substeps) or int(substeps) != substeps \
-                or substeps < 1:
-            raise ValueError(f"integrator.substeps must be an integer ≥ 1, got {substeps!r}")
+        require("integrator.substeps", substeps)
         if not (isinstance(max_abs, (int, float)) and max_abs > 0):  # inf: no bound, only non-finite states diverge
             raise ValueError(f"integrator.max_abs must be a number > 0, got {max_abs!r}")
-        if isinstance(max_substeps, bool) or not isinstance(max_substeps, (int, float)) \
-                or not math.isfinite(max_substeps) or int(max_substeps) != max_substeps or max_substeps < 1:
-            raise ValueError(f"integrator.max_substeps must be an integer ≥ 1 (1: fixed substeps), got {max_substeps!r}")
+        require("integrator.max_substeps", max_substeps)
         self.substeps = int(substeps)
         self.max_substeps = max(int(max_substeps), self.substeps)
         self.max_abs = float(max_abs)

@@ -1,7 +1,6 @@
 """Adaptive Dormand–Prince 5(4) from torchdiffeq, for reference solutions."""
 from __future__ import annotations
 
-import math
 from typing import Callable, Optional
 
 import torch
@@ -9,6 +8,7 @@ from torch import Tensor
 from torchdiffeq import odeint
 
 from lnf.integrators.base import Dynamics, Integrator, RolloutDivergedError, Trajectory, initial_state_cause
+from lnf.utils import require
 
 
 class Dopri5(Integrator):
@@ -16,10 +16,7 @@ class Dopri5(Integrator):
 
     def __init__(self, rtol: float = 1e-9, atol: float = 1e-9, substeps: int = 1, max_abs: float = 1e6) -> None:
         super().__init__(substeps=substeps, max_abs=max_abs, max_substeps=1)  # adaptive: its own step control
-        for key, value in (("rtol", rtol), ("atol", atol)):
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
-                raise ValueError(f"integrator.{key} must be a finite number > 0, got {value!r}")
-        self.rtol, self.atol = float(rtol), float(atol)
+        self.rtol, self.atol = require("integrator.rtol", rtol), require("integrator.atol", atol)
 
     def __repr__(self) -> str:
         return f"Dopri5(rtol={self.rtol:g}, atol={self.atol:g})"

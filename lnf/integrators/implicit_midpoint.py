@@ -12,12 +12,12 @@ midpoint step per step.
 """
 from __future__ import annotations
 
-import math
 
 import torch
 from torch import Tensor
 
 from lnf.integrators.base import FixedStepIntegrator, central_jacobian
+from lnf.utils import require
 
 
 class ImplicitMidpoint(FixedStepIntegrator):
@@ -29,13 +29,7 @@ class ImplicitMidpoint(FixedStepIntegrator):
         super().__init__(substeps=substeps, max_abs=max_abs, max_substeps=max_substeps)
         if order not in (2, 4):
             raise ValueError(f"integrator.order must be 2 or 4 for implicit_midpoint, got {order!r}")
-        if not isinstance(max_iter, (int, float)) or not math.isfinite(max_iter) or int(max_iter) != max_iter \
-                or max_iter < 1:
-            raise ValueError(f"integrator.max_iter must be an integer ≥ 1, got {max_iter!r}")
-        if not (isinstance(tol, (int, float)) and math.isfinite(tol) and tol > 0):
-            raise ValueError(f"integrator.tol must be a finite number > 0 (the tolerance of the implicit solve), "
-                             f"got {tol!r}")
-        self.order, self.tol, self.max_iter = order, float(tol), int(max_iter)
+        self.order, self.tol, self.max_iter = order, require("integrator.tol", tol), require("integrator.max_iter", max_iter)
         if order == 2:
             self.fractions = [1.0]
         else:

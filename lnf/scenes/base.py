@@ -10,6 +10,7 @@ from scipy.integrate import solve_ivp
 from torch import Tensor
 
 from lnf.quadrature import Quadrature
+from lnf.utils import require
 
 
 class DiscretePotential:
@@ -373,8 +374,7 @@ def importable_name(cls: type) -> str:
 def check_positive(**values: float) -> None:
     """Raise a ValueError naming ``scene.<key>`` unless every value is a positive finite number."""
     for key, value in values.items():
-        if not (np.isfinite(value) and value > 0):
-            raise ValueError(f"scene.{key} must be a positive finite number, got {value!r}")
+        require(f"scene.{key}", value, (">", 0, None, ""))
 
 
 def check_range(**ranges: Sequence[float]) -> None:

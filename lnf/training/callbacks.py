@@ -10,10 +10,11 @@ import lightning.pytorch as pl
 import torch
 
 from lnf.evaluation import reduction_subset
-from lnf.evaluation_pipeline import (EvaluationData, EvaluationReport, EvaluationSpec, check_count, evaluate_model,
+from lnf.evaluation_pipeline import (EvaluationData, EvaluationReport, EvaluationSpec, evaluate_model,
                                      write_report)
 from lnf.integrators import Integrator, get_integrator
 from lnf.quadrature import grid_shape_of, midpoint_grid
+from lnf.utils import require
 
 log = logging.getLogger("lnf.evaluation")
 
@@ -50,9 +51,9 @@ class RolloutEvaluationCallback(pl.Callback):
         except (TypeError, ValueError, KeyError) as err:
             raise ValueError(f"integrator={integrator!r}: {err}") from err
         self.output_dir = Path(output_dir)
-        self.every_n_epochs = check_count("every_n_epochs", every_n_epochs)
-        self.val_trajectories = check_count("val_trajectories", val_trajectories, minimum=1)
-        self.val_resolution = check_count("val_resolution", val_resolution, minimum=1)
+        self.every_n_epochs = require("evaluation.every_n_epochs", every_n_epochs)
+        self.val_trajectories = require("evaluation.val_trajectories", val_trajectories)
+        self.val_resolution = require("evaluation.val_resolution", val_resolution)
         self.spec = EvaluationSpec(integrator=self.integrator, split="test", max_reduction_points=max_reduction_points,
                                    decoding=decoding, long_steps=long_steps, long_trajectories=long_trajectories,
                                    long_dt=long_dt, figures=figures)

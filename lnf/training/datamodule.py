@@ -19,6 +19,7 @@ from lnf.model import build
 from lnf.scenes.base import Scene
 from lnf.training.batch import SnapshotBatch
 from lnf.training.sampling import GlobalBatchSampler
+from lnf.utils import require
 
 log = logging.getLogger("lnf.data")
 
@@ -199,14 +200,10 @@ class SnapshotDataModule(pl.LightningDataModule):
         # with other values later in the run (the test stage) is refused
         self.checksum: Optional[str] = None
         self.on_mismatch = on_mismatch
-        if int(batch_size) != batch_size or batch_size < 1:
-            raise ValueError(f"data.batch_size must be an integer ≥ 1, got {batch_size!r}")
-        if int(num_workers) != num_workers or num_workers < 0:
-            raise ValueError(f"data.num_workers must be an integer ≥ 0, got {num_workers!r}")
-        self.batch_size, self.num_workers = int(batch_size), int(num_workers)
-        if not (np.isfinite(noise) and noise >= 0):
-            raise ValueError(f"data.noise must be a finite number ≥ 0 (relative noise std), got {noise!r}")
-        self.noise, self.in_memory, self.shuffle_seed = float(noise), bool(in_memory), int(shuffle_seed)
+        self.batch_size = require("data.batch_size", batch_size, ("int", 1, None, ""))
+        self.num_workers = require("data.num_workers", num_workers, ("int", 0, None, ""))
+        self.noise = require("data.noise", noise, ("≥", 0, None, "relative noise std"))
+        self.in_memory, self.shuffle_seed = bool(in_memory), int(shuffle_seed)
         self._splits: dict[str, TrajectorySplit] = {}
         self._snapshots: dict[str, SnapshotDataset] = {}
         self.potential_targets = False

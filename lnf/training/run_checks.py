@@ -13,6 +13,7 @@ from omegaconf import DictConfig, OmegaConf
 from lnf.model import target_class
 from lnf.scenes.base import Scene
 from lnf.scenes.check import SceneCheckError, check_scene
+from lnf.utils import require
 
 log = logging.getLogger("lnf.train")
 
@@ -81,8 +82,7 @@ def check_settings(cfg: DictConfig, module: Any) -> None:
     except (TypeError, ValueError) as err:
         raise ValueError(f"quadrature={OmegaConf.to_container(cfg.quadrature)}: {err}") from err
     max_epochs = cfg.trainer.get("max_epochs")
-    if isinstance(max_epochs, bool) or not isinstance(max_epochs, int) or max_epochs < 1:
-        raise ValueError(f"trainer.max_epochs must be an integer ≥ 1 (the training budget), got {max_epochs!r}")
+    require("trainer.max_epochs", max_epochs, ("int", 1, None, "the training budget"))
 
 
 def _differences(group: str, saved: dict[str, Any], config: dict[str, Any], keys: set[str]) -> list[str]:
