@@ -174,6 +174,9 @@ class LagrangianNeuralField(ReducedModel):
             0 gives the paper's loss ℓ^r + ℓ^p exactly (see :meth:`losses`).
         energy_weight: λ_E of the optional potential-energy loss ℓ^E = huber((Ṽ(q̃) − V)/E_scale), Ṽ the pulled-back
             potential at the snapshot's code and V the full-order one (not in the paper; see :meth:`losses`).
+        dynamics_weight: λ_D of the optional dynamics-residual loss ℓ^D: the pulled-back equations' acceleration at
+            the snapshot's code and code velocity against the code acceleration of the observed motion (not in the
+            paper; see :meth:`losses`).
         gradient_weight: λ_G of the optional gradient (Sobolev) loss ℓ^G = (1/N) Σ_j ω0 ‖∇_X φ − ∇_X q‖² against
             the full-order field gradient at the observed points (not in the paper; see :meth:`losses`).
         mass_condition_weight, mass_condition_max: λ_M and κ of the mass-conditioning loss
@@ -217,6 +220,7 @@ class LagrangianNeuralField(ReducedModel):
         pod_subspace: bool = False,
         pod_degree: int = 12,
         energy_weight: float = 0.0,
+        dynamics_weight: float = 0.0,
         gradient_weight: float = 0.0,
         mass_condition_weight: float = 1.0,
         mass_condition_max: float = 100.0,
@@ -233,6 +237,11 @@ class LagrangianNeuralField(ReducedModel):
         self.velocity_weight = require("model.velocity_weight", velocity_weight)
         self.energy_weight = require("model.energy_weight", energy_weight)
         self.gradient_weight = require("model.gradient_weight", gradient_weight)
+        self.dynamics_weight = require("model.dynamics_weight", dynamics_weight)
+        if self.dynamics_weight > 0 and not scene.is_conservative:
+            raise ValueError(f"model.dynamics_weight={dynamics_weight}: the dynamics-residual loss needs the "
+                             f"snapshots' loads, which training batches do not carry, and scene {scene.name!r} has "
+                             f"non-conservative forces; set model.dynamics_weight=0")
         self.mass_condition_weight = require("model.mass_condition_weight", mass_condition_weight)
         self.mass_condition_max = require("model.mass_condition_max", mass_condition_max)
         self.field = ModulatedSiren(latent_dim=latent_dim, in_dim=scene.body_dim, out_dim=scene.field_dim,
@@ -368,7 +377,8 @@ class LagrangianNeuralField(ReducedModel):
     # ------------------------------------------------------------------ training losses (docs/method.md §4)
     def losses(self, points: Tensor, values: Tensor, velocities: Optional[Tensor] = None,
                potential: Optional[Tensor] = None, energy_factor: float = 1.0,
-               gradients: Optional[Tensor] = None) -> dict[str, Tensor]:
+               gradients: Optional[Tensor] = None, accelerations: Optional[Tensor] = None,
+               acceleration_valid: Optional[Tensor] = None) -> dict[str, Tensor]:
         """Training losses of snapshots (B, N, A) observed at points (B, N, dim_B) (docs/method.md §4).
 
         ``loss = ℓ^r + ℓ^p`` (+ λ_v ℓ^v when ``velocity_weight`` > 0 and `velocities` (B, N, A) are given),
@@ -385,6 +395,14 @@ class LagrangianNeuralField(ReducedModel):
 
         With ``gradient_weight`` > 0 and the snapshots' full-order field gradients `gradients` (B, N, A, dim_B),
         also λ_G ℓ^G with ℓ^G = (1/N) Σ_j ω0 ‖∇_X φ(q̃, X_j) − ∇_X q_j‖²: ∇_X φ itself fitted (Sobolev training).
+
+        With ``dynamics_weight`` > 0 and the snapshots' observed acceleration fields `accelerations` (B, N, A) (valid
+        where `acceleration_valid` (B,) says), also `energy_factor` · λ_D ℓ^D with ℓ^D the Huber loss (δ = 1) of
+        ‖ã(q̃, q̃̇) − q̃̈‖ / rms_batch ‖q̃̈‖ (an untrained φ's accelerations are off by orders of magnitude): ã = M̃⁻¹(−c̃ − g̃)
+        the pulled-back equations' acceleration on the model's quadrature, q̃̇ the ω0-projection of the observed
+        velocity onto span J, and q̃̈ = (dφ)†(ü − H[q̃̇, q̃̇]) the code acceleration of the observed motion (u̇ = J q̃̇ and
+        ü = J q̃̈ + H[q̃̇, q̃̇] on φ). ℓ^r, ℓ^p, ℓ^E and ℓ^G fit φ and Ṽ on the snapshots; ℓ^D fits the forces of the
+        equations pulled back through φ to the motion the trajectories show.
 
         With ``mass_condition_weight`` > 0 and d ≥ 2, also λ_M ℓ^M, ℓ^M = relu(log₁₀(λ_max/λ_min) − log₁₀ κ)² over
         the eigenvalues of M̃(q̃) = Jᵀ W J on the observed points. A latent direction the data barely excite leaves a
@@ -423,6 +441,11 @@ class LagrangianNeuralField(ReducedModel):
             energy = torch.nn.functional.huber_loss(gap, torch.zeros_like(gap), reduction="none", delta=0.1)
             total = total + energy_factor * self.energy_weight * energy
             out["energy"] = energy.mean()
+        if self.dynamics_weight > 0 and energy_factor > 0 and accelerations is not None \
+                and acceleration_valid is not None and bool(acceleration_valid.any()) and velocities is not None:
+            residual = self._dynamics_residual(codes, points, weights, velocities, accelerations, acceleration_valid)
+            total = total + energy_factor * self.dynamics_weight * residual
+            out["dynamics"] = residual.sum() / acceleration_valid.sum()
         if self.mass_condition_weight > 0 and mass.shape[-1] > 1:
             eig = torch.linalg.eigvalsh(mass)  # ascending (B, d)
             tiny = torch.finfo(eig.dtype).tiny
@@ -437,6 +460,21 @@ class LagrangianNeuralField(ReducedModel):
         out["loss"] = total.mean()
         out["codes"] = codes.detach()
         return out
+
+    def _dynamics_residual(self, codes: Tensor, points: Tensor, weights: Tensor, velocities: Tensor,
+                           accelerations: Tensor, valid: Tensor) -> Tensor:
+        """ℓ^D per snapshot (B,), zero where `valid` is False (see :meth:`losses`)."""
+        keep = valid.nonzero().squeeze(-1)
+        q, pts, w = codes[keep], points[keep], weights[keep]
+        jet = self.field.jet(q, pts, order=2)
+        code_velocity = project_velocity(jet.J, w, velocities[keep].to(jet.J))
+        curvature = torch.einsum("bnaij,bi,bj->bna", jet.H, code_velocity, code_velocity)
+        code_acceleration = project_velocity(jet.J, w, accelerations[keep].to(jet.J) - curvature)
+        predicted = self.lagrangian_dynamics().acceleration(q, code_velocity)
+        scale = code_acceleration.detach().pow(2).sum(-1).mean().clamp_min(torch.finfo(q.dtype).tiny).sqrt()
+        gap = (predicted - code_acceleration).norm(dim=-1) / scale
+        residual = torch.nn.functional.huber_loss(gap, torch.zeros_like(gap), reduction="none", delta=1.0)
+        return codes.new_zeros(codes.shape[0]).index_put((keep,), residual)
 
     def extra_repr(self) -> str:
         kind = "lagrangian" if self.latent_dynamics is None else type(self.latent_dynamics).__name__

@@ -86,6 +86,7 @@ def _train(cfg: DictConfig) -> dict[str, float]:
         del ckpt
     datamodule.prepare_data()  # generates, or verifies every split of a stored file, before the first step
     datamodule.potential_targets = getattr(module.model, "energy_weight", 0.0) > 0  # items carry V for ℓ^E
+    datamodule.acceleration_targets = getattr(module.model, "dynamics_weight", 0.0) > 0  # items carry ü for ℓ^D
     datamodule.gradient_targets = getattr(module.model, "gradient_weight", 0.0) > 0  # items carry ∇_X q for ℓ^G
     fit_info = fit_subspace_first(module, datamodule, resumed=ckpt_file is not None)
     if search_w0:  # model.w0=auto: a short search on the data (lnf/w0_search.py), then training starts afresh

@@ -119,3 +119,23 @@ def test_gradient_targets_need_a_scene_that_gives_them(data_dir):
     dm.gradient_targets = True
     with pytest.raises(ValueError, match="gradient_weight=0"):
         dm.snapshots("train")
+
+
+def test_acceleration_targets_are_fourth_order_differences_of_the_observed_velocities(data_dir):
+    """Items carry the observed acceleration field (−u̇_{k+2} + 8u̇_{k+1} − 8u̇_{k−1} + u̇_{k−2}) / (12 dt) inside the
+    training window, and none within two samples of its ends (nothing after the training horizon is read)."""
+    dm = _module(data_dir)
+    dm.acceleration_targets = True
+    ds = dm.snapshots("train")
+    split = load_split(dm.path, "train")
+    idx = np.flatnonzero(split.masks[2])
+    u = split.coarse_velocities[2][:, idx]
+    item = ds[2 * 6 + 3]
+    expected = (-u[5] + 8 * u[4] - 8 * u[2] + u[1]) / (12 * 0.05)
+    assert bool(item["acceleration_valid"])
+    np.testing.assert_allclose(item["accelerations"].numpy(), expected, rtol=1e-5, atol=1e-6)
+    for k in (0, 1, 4, 5):  # train_times = 6: k + 2 must stay below it
+        edge = ds[2 * 6 + k]
+        assert not bool(edge["acceleration_valid"]) and edge["accelerations"].shape == item["accelerations"].shape
+    batch = next(iter(dm.train_dataloader()))
+    assert batch.accelerations.shape == batch.values.shape and batch.acceleration_valid.dtype == torch.bool

@@ -539,8 +539,8 @@ def test_scenes_script_measures_a_tiny_elastic_checkpoint(scene, tmp_path):
 
 
 def test_elastic_diagnostics_smoke(tmp_path):
-    """Content of both releases on a tiny mesh, and the energy, gradient, curve and tangent diagnostics of a tiny
-    checkpoint."""
+    """Content of both releases on a tiny mesh, and the energy, gradient, equation-residual, curve and tangent
+    diagnostics of a tiny checkpoint (trained with the gradient and dynamics-residual losses)."""
     reports = tmp_path / "reports"
     out = _run(["-m", "experiments.elastic_diagnostics", "--content", "--oracle", "--degree", "1", "2", "--runs", "2",
                 "--mesh", "6", "3", "--out", str(reports)]).stdout
@@ -554,13 +554,15 @@ def test_elastic_diagnostics_smoke(tmp_path):
     assert "| `shape` |" in content and "| `modal` (the default) |" in content
     run = tmp_path / "run"
     _run(["-m", "lnf.train", "+experiment=elastic", "trainer=smoke", "logger=csv", "scene.mesh=[6,3]",
-          "data.n_train=2", "data.n_val=1", "data.n_test=1", "data.n_times=8", "data.train_times=4",
+          "data.n_train=2", "data.n_val=1", "data.n_test=1", "data.n_times=8", "data.train_times=6",
           "data.fine_resolution=8", "data.coarse_resolution=8", "model.width=16", "model.hyper_width=8",
           "quadrature.order=[4,3]", "evaluation.long_steps=4", "evaluation.long_trajectories=1",
-          "model.gradient_weight=1.0", f"paths.data_dir={tmp_path / 'data'}", f"hydra.run.dir={run}"])
-    assert "train/gradient" in json.loads((run / "metrics.json").read_text())  # the FEM's ∇_X u reached the loss
+          "model.gradient_weight=1.0", "model.dynamics_weight=1.0", "optimizer.energy_warmup_epochs=0",
+          f"paths.data_dir={tmp_path / 'data'}", f"hydra.run.dir={run}"])
+    fit = json.loads((run / "metrics.json").read_text())
+    assert "train/gradient" in fit and "train/dynamics" in fit  # the FEM's ∇_X u and the observed ü reached the loss
     out = _run(["-m", "experiments.elastic_diagnostics", "--ckpt", str(run / "checkpoints" / "last.ckpt")]).stdout
-    assert "T_FEM" in out and "velocity-gradient relative error" in out
+    assert "T_FEM" in out and "velocity-gradient relative error" in out and "relative residual, median" in out
     assert "FEM through φ: small-amplitude period" in out and "model: rollout error in the horizon" in out
     assert "period of the learned tangent under the FEM's K_t" in out
 

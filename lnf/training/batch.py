@@ -14,7 +14,9 @@ class SnapshotBatch:
 
     points (B, Nobs, dim_B); values, velocities (B, Nobs, A); potential (B,): each snapshot's full-order potential
     energy V (the energy loss's target), or None when the model has no energy loss; gradients (B, Nobs, A, dim_B):
-    the full-order ∇_X q at the observed points (the gradient loss's target), or None.
+    the full-order ∇_X q at the observed points (the gradient loss's target), or None; accelerations (B, Nobs, A)
+    and acceleration_valid (B,) bool: the observed acceleration field (finite differences of the observed
+    velocities in time) and whether a snapshot has one (the dynamics-residual loss's target), or None.
     """
 
     points: Tensor
@@ -22,6 +24,8 @@ class SnapshotBatch:
     velocities: Tensor
     potential: Optional[Tensor] = None
     gradients: Optional[Tensor] = None
+    accelerations: Optional[Tensor] = None
+    acceleration_valid: Optional[Tensor] = None
 
     def __len__(self) -> int:
         return self.values.shape[0]

@@ -52,10 +52,11 @@ class SnapshotDataset(Dataset):
 
     def __init__(self, path: str | Path, split: str, n_times: int, noise: float = 0.0, seed: int = 0,
                  in_memory: bool = False, scene: Optional[Scene] = None,
-                 gradient_scene: Optional[Scene] = None) -> None:
+                 gradient_scene: Optional[Scene] = None, accelerations: bool = False) -> None:
         self.path, self.split, self.n_times = Path(path), split, int(n_times)
-        self.noise, self.seed = float(noise), int(seed)
+        self.noise, self.seed, self.accelerations = float(noise), int(seed), bool(accelerations)
         with h5py.File(self.path, "r") as f:
+            self.dt = float(f["times"][1] - f["times"][0]) if f["times"].shape[0] > 1 else float("nan")
             masks = f[f"{split}/masks"][...]
             self.index = observed_index(masks)  # (n, Nobs)
             self.points = torch.as_tensor(f["grids/coarse"][...][self.index], dtype=torch.float32)
@@ -133,7 +134,21 @@ class SnapshotDataset(Dataset):
             item["potential"] = self.potential[i, k]
         if self.gradients is not None:
             item["gradients"] = self.gradients[i, k]
+        if self.accelerations:
+            item["accelerations"], item["acceleration_valid"] = self._acceleration(i, k)
         return item
+
+    def _acceleration(self, i: int, k: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """The observed acceleration field (Nobs, A) of snapshot (i, k): the fourth-order central difference
+        (−u̇_{k+2} + 8u̇_{k+1} − 8u̇_{k−1} + u̇_{k−2}) / (12 dt) of the observed velocities (with the noise of their
+        own items), and whether it exists (False within two samples of either end of the training window)."""
+        if not 2 <= k < self.n_times - 2:
+            shape = self.points[i].shape[:-1] + (self._source(self.KEYS[1]).shape[-1],)
+            return torch.zeros(shape), torch.tensor(False)
+        near = {j: self._noisy(i, k + j, self._read(self.KEYS[0], i, k + j), self._read(self.KEYS[1], i, k + j))[1]
+                for j in (-2, -1, 1, 2)}
+        acc = (-near[2] + 8.0 * near[1] - 8.0 * near[-1] + near[-2]) / (12.0 * self.dt)
+        return torch.from_numpy(np.ascontiguousarray(acc, dtype=np.float32)), torch.tensor(True)
 
     def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """All items stacked: points (n, Nobs, dim_B), values and velocities (n, n_times, Nobs, A)."""
@@ -168,8 +183,9 @@ class SnapshotDataModule(pl.LightningDataModule):
     RMS over the split; seeded by `seed`), in_memory (read the observations once instead of streaming them
     from the file), shuffle_seed (seed of the per-epoch batch order), and the :class:`DatasetConfig` fields.
     Set ``potential_targets`` (``lnf.train`` does when the model has an energy loss) before the first batch
-    for items that also carry each snapshot's full-order potential energy, and ``gradient_targets`` for items
-    that also carry its ∇_X q at the observed points."""
+    for items that also carry each snapshot's full-order potential energy, ``gradient_targets`` for items
+    that also carry its ∇_X q at the observed points, and ``acceleration_targets`` for its observed acceleration
+    field (the dynamics-residual loss's target)."""
 
     def __init__(self, scene: "Scene | dict", data_dir: str = "data", path: Optional[str] = None,
                  on_mismatch: str = "regenerate", batch_size: int = 32, num_workers: int = 0,
@@ -208,6 +224,7 @@ class SnapshotDataModule(pl.LightningDataModule):
         self._snapshots: dict[str, SnapshotDataset] = {}
         self.potential_targets = False
         self.gradient_targets = False
+        self.acceleration_targets = False
 
     @property
     def from_arrays(self) -> bool:
@@ -283,7 +300,8 @@ class SnapshotDataModule(pl.LightningDataModule):
         self._snapshots[split] = SnapshotDataset(self.path, split, self.train_times, noise=noise,
                                                  seed=self.seed + 7919, in_memory=self.in_memory,
                                                  scene=self.scene if self.potential_targets else None,
-                                                 gradient_scene=self.scene if self.gradient_targets else None)
+                                                 gradient_scene=self.scene if self.gradient_targets else None,
+                                                 accelerations=self.acceleration_targets)
         return self._snapshots[split]
 
     def observations(self, split: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -55,7 +55,8 @@ class LNFModule(pl.LightningModule):
 
     def _step(self, batch: SnapshotBatch, stage: str, batch_idx: int = 0) -> Tensor:
         out = self.model.losses(batch.points, batch.values, batch.velocities, batch.potential,
-                                energy_factor=self.energy_factor(), gradients=batch.gradients)
+                                energy_factor=self.energy_factor(), gradients=batch.gradients,
+                                accelerations=batch.accelerations, acceleration_valid=batch.acceleration_valid)
         if stage == "train" and hasattr(self.model, "track_code_range"):
             # the box of a tabulated dynamics: the codes of the current epoch (restarted with its first batch)
             self.model.track_code_range(out["codes"], reset=batch_idx == 0)
@@ -63,7 +64,7 @@ class LNFModule(pl.LightningModule):
         # epoch values are averaged over DDP ranks (each holds part of the global batch)
         log = functools.partial(self.log, batch_size=bs, on_step=stage == "train", on_epoch=True, sync_dist=True)
         log(f"{stage}/loss", out["loss"], prog_bar=True)
-        for key in ("reconstruction", "projection", "velocity", "energy", "gradient", "mass_condition"):
+        for key in ("reconstruction", "projection", "velocity", "energy", "dynamics", "gradient", "mass_condition"):
             if key in out:
                 log(f"{stage}/{key}", out[key])
         if stage == "train":
