@@ -312,18 +312,16 @@ def test_sigterm_stops_a_run_in_its_test_rollouts():
     assert "the rollouts ran to their end" not in proc.stdout
 
 
-def test_sigterm_handling_is_lightnings_under_slurm_and_restored_after_the_run():
+def test_sigterm_handling_is_lightnings_under_slurm_and_restored_after_the_run(monkeypatch):
     import signal
 
     from lnf.training.signals import ended_by_sigterm
 
+    monkeypatch.delenv("SLURM_JOB_ID", raising=False)  # a CI machine under SLURM: its value is restored afterwards
     before = signal.getsignal(signal.SIGTERM)
     with ended_by_sigterm():
         assert signal.getsignal(signal.SIGTERM) is not before
     assert signal.getsignal(signal.SIGTERM) is before
-    os.environ["SLURM_JOB_ID"] = "1"
-    try:
-        with ended_by_sigterm():
-            assert signal.getsignal(signal.SIGTERM) is before  # SLURM's auto-requeue keeps the signal
-    finally:
-        del os.environ["SLURM_JOB_ID"]
+    monkeypatch.setenv("SLURM_JOB_ID", "1")
+    with ended_by_sigterm():
+        assert signal.getsignal(signal.SIGTERM) is before  # SLURM's auto-requeue keeps the signal
