@@ -61,16 +61,14 @@ def main() -> None:
 
     import lnf
     from lnf.dataset import load_split
-    from lnf.evaluation_pipeline import EvaluationData, EvaluationSpec, long_horizon_check
+    from lnf.evaluation_pipeline import split_long_check
     from lnf.integrators import get_integrator
 
     model = lnf.load(run_dir / "checkpoints" / "last.ckpt")
     split = load_split(model.checkpoint["data"]["path"], "test")
     run_cfg = json.loads((run_dir / "run.json").read_text())["config"]
     integrator = run_cfg["integrator"]
-    data = EvaluationData(split.states[: args.trajectories], split.times, split.fine_points, float(split.times[-1]))
-    long = long_horizon_check(model, data, EvaluationSpec(integrator=integrator, long_steps=args.steps,
-                                                          long_trajectories=args.trajectories, long_dt=args.dt))
+    long = split_long_check(model, split, args.trajectories, args.steps, integrator, dt=args.dt)
     rows = [
         ("wall-clock of the train command [min] (incl. data generation)", train_wall / 60, "<=", 20.0),
         ("field_rel_l2 median, all 100 samples, 64x64", metrics["field_rel_l2/all/median"], "<=", 0.02),

@@ -58,7 +58,7 @@ from lnf.baselines.latent_mlp import LatentMLPDynamics
 from lnf.baselines.pod import PODGalerkin
 from lnf.evaluation import trajectory_controls
 from lnf.evaluation_pipeline import (EvaluationData, EvaluationSpec, checkpoint_data, ensure_code_range,
-                                     evaluate_model, long_horizon_check)
+                                     evaluate_model, split_long_check)
 from lnf.model import load
 from lnf.tempfiles import write_json_atomic
 from lnf.train import fit_latent_dynamics
@@ -87,13 +87,6 @@ def evaluate(model: Any, split: Any, integrator: Any = None, states: np.ndarray 
         data = replace(data, states=states[:, ::stride], true_fields=None, true_velocities=None, true_energies=None,
                        controls=None)
     return evaluate_model(model, data, EvaluationSpec(integrator=integrator or MIDPOINT, label="rollout")).rollouts
-
-
-def long_check(model: Any, split: Any, n: int, steps: int, integrator: Any) -> dict[str, float]:
-    """The long-horizon energy check (``energy_drift_long/*``) of the first `n` trajectories of `split` over `steps`
-    steps at its sample spacing, started from the scene's fields of their initial states."""
-    data = EvaluationData(split.states[:n], split.times, split.fine_points, float(split.times[-1]))
-    return long_horizon_check(model, data, EvaluationSpec(integrator=integrator, long_steps=steps, long_trajectories=n))
 
 
 # the structure-preserving integrator of these measurements: order 2 (the order-4 composition's backward substep
@@ -156,8 +149,8 @@ def black_box(ctx: Context) -> dict[str, Any]:
     horizon = float(split.times[split.train_times])
     steps = int(round(20 * horizon / dt))
     # the first 8 test trajectories, 20x the horizon (1000 steps each)
-    drift_ours = long_check(model, split, 8, steps, MIDPOINT)
-    drift_bb = long_check(black, split, 8, steps, "rk4")
+    drift_ours = split_long_check(model, split, 8, steps, MIDPOINT)
+    drift_bb = split_long_check(black, split, 8, steps, "rk4")
     keys = ("vpt/median", "vpt/min", "field_rel_l2/in_horizon/median", "field_rel_l2/all/median",
             "projection_rel_l2/all/median", "energy_rel_err/median", "diverged_fraction")
     result = {"ours": {**pick(ours.metrics, *keys), **drift_ours}, "black_box": {**pick(bb.metrics, *keys), **drift_bb},
@@ -233,7 +226,7 @@ def speedup(ctx: Context) -> dict[str, Any]:
                                            "field_rel_l2/all/median", "field_rel_l2/extrapolation/median",
                                            "projection_rel_l2/in_horizon/median", "energy_rel_err/median",
                                            "energy_drift/max", "vpt/median")}
-    long = long_check(model, split, 4, 1000, MIDPOINT)
+    long = split_long_check(model, split, 4, 1000, MIDPOINT)
     result["ours"].update(long)
     # full-order reference: the largest step that meets the target against the stored ground truth, in the horizon
     states0 = split.states[:, 0]

@@ -154,6 +154,15 @@ def long_horizon_check(model: ReducedModel, data: EvaluationData, spec: Evaluati
         controls=None if data.controls is None else data.controls[:k], progress=spec.progress)
 
 
+def split_long_check(model: ReducedModel, split: Any, n: int, steps: int, integrator: Any,
+                     dt: Optional[float] = None) -> dict[str, float]:
+    """:func:`long_horizon_check` of the first `n` trajectories of a loaded `split` over `steps` steps of `dt` [s]
+    (None: the split's spacing), started from the scene's fields of their initial states."""
+    data = EvaluationData(split.states[:n], split.times, split.fine_points, float(split.times[-1]))
+    spec = EvaluationSpec(integrator=integrator, long_steps=steps, long_trajectories=n, long_dt=dt)
+    return long_horizon_check(model, data, spec)
+
+
 def write_report(report: EvaluationReport, output_dir: Path, extra: Optional[dict[str, float]] = None,
                  logger: logging.Logger = log) -> list[Path]:
     """Log what the metrics say about the error budget, write ``metrics.json`` (the report's metrics and `extra`)
