@@ -152,6 +152,9 @@ def checkpoint(path: Path, trajectory: int = 0) -> None:
         coarse = torch.as_tensor(f["grids/coarse"][:]).double()
         test_fields = torch.as_tensor(f["test/coarse_fields"][:, :train_times]).double()
         test_states = f["test/states"][:, :train_times]
+        # for the equation residual: the first 4 test trajectories, every sample, on the fine grid
+        first_fields, first_velocities = (torch.as_tensor(f[f"test/{key}"][:4]) for key in ("fields", "velocities"))
+        dt = float(f["times"][1] - f["times"][0])
     with torch.no_grad():
         q = model.reduce(points, fields)
         qdot = model.project_velocity(q, points, velocities)
@@ -174,9 +177,7 @@ def checkpoint(path: Path, trajectory: int = 0) -> None:
     cols = np.unique(X[:, 0].round(4))
     print("  " + "  ".join(f"{x:.2f}: {np.sqrt((err[m]**2).sum() / (ref[m]**2).sum()):.2f}"
                            for x in cols for m in [X[:, 0].round(4) == x]))
-    with h5py.File(ROOT / model.checkpoint["data"]["path"], "r") as f:
-        residual = equation_residual(model, points, torch.as_tensor(f["test/fields"][:4]),
-                                     torch.as_tensor(f["test/velocities"][:4]), float(f["times"][1] - f["times"][0]))
+    residual = equation_residual(model, points, first_fields, first_velocities, dt)
     print("the pulled-back equations against the encoded motion of 4 test trajectories (all samples):")
     for key, value in residual.items():
         print(f"  {key}: {value:.4f}")

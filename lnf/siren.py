@@ -22,6 +22,7 @@ from typing import Any, Optional
 
 import torch
 from torch import Tensor, nn
+
 from lnf.utils import NUMBER_RULES, require
 
 

@@ -187,11 +187,7 @@ def check_config(cfg: DictConfig) -> None:
     if missing:
         raise ValueError(f"missing required config values: {sorted(missing)}")
     check_numbers(cfg)
-    model = cfg.model
-    if model.get("latent_dim") is not None and int(model.latent_dim) < 1:
-        raise ValueError(f"model.latent_dim must be ≥ 1, got {model.latent_dim}")
-    if model.get("reduction_steps") is not None and int(model.reduction_steps) < 1:
-        raise ValueError(f"model.reduction_steps (K) must be ≥ 1, got {model.reduction_steps}")
+    model = cfg.model  # latent_dim, reduction_steps ≥ 1: NUMBER_RULES, in check_numbers above
     dynamics = cfg.get("dynamics")
     if dynamics is not None and _needs_codes(dynamics) and not _has_codes(model):
         raise ValueError(f"dynamics={dynamics._target_} (learned or tabulated latent dynamics) needs model=lnf "

@@ -139,3 +139,13 @@ def test_acceleration_targets_are_fourth_order_differences_of_the_observed_veloc
         assert not bool(edge["acceleration_valid"]) and edge["accelerations"].shape == item["accelerations"].shape
     batch = next(iter(dm.train_dataloader()))
     assert batch.accelerations.shape == batch.values.shape and batch.acceleration_valid.dtype == torch.bool
+
+
+def test_with_noise_the_acceleration_is_that_of_the_neighbours_noisy_velocities(data_dir):
+    """The stencil reads each neighbour's velocities with the noise that neighbour's own item carries."""
+    dm = _module(data_dir, noise=0.1)
+    dm.acceleration_targets = True
+    ds = dm.snapshots("train")
+    u = {j: ds[1 * 6 + 3 + j]["velocities"].numpy() for j in (-2, -1, 1, 2)}
+    expected = (-u[2] + 8 * u[1] - 8 * u[-1] + u[-2]) / (12 * 0.05)
+    np.testing.assert_allclose(ds[1 * 6 + 3]["accelerations"].numpy(), expected, rtol=1e-5, atol=1e-5)

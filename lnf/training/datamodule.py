@@ -121,9 +121,13 @@ class SnapshotDataset(Dataset):
     def _noisy(self, i: int, k: int, values: np.ndarray, velocities: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         if self.noise_std is None:
             return values, velocities
+        value_noise, velocity_noise = self._noise(i, k, values.shape)
+        return values + value_noise, velocities + velocity_noise
+
+    def _noise(self, i: int, k: int, shape: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
+        """The noise of item (i, k): of its values, then of its velocities (each `shape`, float32)."""
         rng = np.random.default_rng([self.seed, i, k])
-        values = values + (self.noise_std[0] * rng.standard_normal(values.shape)).astype(np.float32)
-        return values, velocities + (self.noise_std[1] * rng.standard_normal(velocities.shape)).astype(np.float32)
+        return tuple((std * rng.standard_normal(shape)).astype(np.float32) for std in self.noise_std)
 
     def __getitem__(self, index: int) -> dict[str, torch.Tensor]:
         i, k = divmod(int(index), self.n_times)
@@ -145,8 +149,9 @@ class SnapshotDataset(Dataset):
         if not 2 <= k < self.n_times - 2:
             shape = self.points[i].shape[:-1] + (self._source(self.KEYS[1]).shape[-1],)
             return torch.zeros(shape), torch.tensor(False)
-        near = {j: self._noisy(i, k + j, self._read(self.KEYS[0], i, k + j), self._read(self.KEYS[1], i, k + j))[1]
-                for j in (-2, -1, 1, 2)}
+        near = {j: self._read(self.KEYS[1], i, k + j) for j in (-2, -1, 1, 2)}
+        if self.noise_std is not None:  # each neighbour's own noise; its values are not read
+            near = {j: u + self._noise(i, k + j, u.shape)[1] for j, u in near.items()}
         acc = (-near[2] + 8.0 * near[1] - 8.0 * near[-1] + near[-2]) / (12.0 * self.dt)
         return torch.from_numpy(np.ascontiguousarray(acc, dtype=np.float32)), torch.tensor(True)
 
