@@ -91,8 +91,9 @@ class OperatorInference:
             ‖q − q̄‖_W / ‖q̇ − q̄̇‖_W, so that both halves of a snapshot carry the same energy in the POD.
         blowup: a reduced state larger than `blowup` × the largest training one counts as diverged.
         svdsolver: the POD's SVD (``opinf.basis.PODBasis``): "dense", "randomized" (seeded: the same basis every
-            run), or "auto" (default): dense when the snapshot matrix has at most 500 rows or columns, else
-            randomized, which computes only the r leading modes (seconds instead of minutes on a 64² grid).
+            run), or "auto" (default): dense (the economy SVD, cost rows × columns²) when the snapshot matrix has at
+            most 5,000 rows or columns, else randomized. On the cantilever's 16,384 × 1,600 snapshots the dense SVD
+            took 16 s and the randomized one 57 s (one thread each, same machine, same run).
     """
 
     def __init__(self, rank: int, operators: Sequence[str] = OPERATORS, regularizers: Sequence[float] = REGULARIZERS,
@@ -201,7 +202,7 @@ class OperatorInference:
         X = self._snapshots(q, v)
         self.mean = X.mean(axis=1)
         X = X - self.mean[:, None]
-        solver = self.svdsolver if self.svdsolver != "auto" else "dense" if min(X.shape) <= 500 else "randomized"
+        solver = self.svdsolver if self.svdsolver != "auto" else "dense" if min(X.shape) <= 5000 else "randomized"
         options = {"random_state": 0} if solver == "randomized" else {}
         self.basis = opinf.basis.PODBasis(num_vectors=self.rank, weights=np.concatenate([wa, wa]), svdsolver=solver,
                                           **options).fit(X)
