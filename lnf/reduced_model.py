@@ -12,6 +12,7 @@ trained by ``lnf.train``; see :meth:`ReducedModel.as_model`), and what comes bac
 """
 from __future__ import annotations
 
+import contextlib
 import copy
 import inspect
 import warnings
@@ -25,6 +26,7 @@ from lnf.integrators import Integrator, Trajectory, get_integrator
 from lnf.quadrature import GaussLegendre, Quadrature, QuadratureRule
 from lnf.reduction import project_velocity
 from lnf.scenes.base import Scene
+from lnf.threads import one_torch_thread
 
 
 class OutsideBodyWarning(UserWarning):
@@ -191,7 +193,9 @@ class ReducedModel(nn.Module):
         # an integrator of a user's own whose integrate() takes no progress callback runs without a progress bar
         extra = {"progress": progress} if progress is not None and \
             "progress" in inspect.signature(integ.integrate).parameters else {}
-        with torch.no_grad():
+        # a dynamics of small tensors (a table) runs on one thread: its ops are too small for a thread pool
+        threads = one_torch_thread() if getattr(dynamics, "small_tensors", False) else contextlib.nullcontext()
+        with torch.no_grad(), threads:
             return integ.integrate(dynamics, q0, v0, dt, steps, record_every=record_every,
                                    on_divergence=on_divergence, **extra)
 

@@ -112,6 +112,8 @@ class TabulatedDynamics:
     """
 
     kind = TABULATED
+    #: rollouts run on one torch thread: an evaluation is a few hundred numbers (lnf.threads.one_torch_thread)
+    small_tensors = True
 
     def __init__(self, exact: ReducedDynamics, low: Sequence[float], high: Sequence[float], tol: float = 1e-7,
                  min_nodes: int = 16, max_nodes: int = 256, max_table_points: int = 65536, chunk: int = 256,

@@ -107,3 +107,30 @@ def test_model_tracks_training_codes_and_tabulates_on_their_range(pendulum, tmp_
     fresh = LagrangianNeuralField(pendulum, width=16, hyper_width=8)
     fresh.load_state_dict(state)
     assert torch.isnan(fresh.code_low).all()
+
+
+def test_a_tabulated_rollout_runs_on_one_torch_thread_and_restores_the_callers_count(pendulum):
+    from lnf.integrators.rk4 import RK4
+    from lnf.model import LagrangianNeuralField
+
+    seen = []
+
+    class Recording(RK4):  # notes the thread count the integration runs on
+        def integrate(self, *args, **kwargs):
+            seen.append(torch.get_num_threads())
+            return super().integrate(*args, **kwargs)
+
+    model = LagrangianNeuralField(pendulum, width=16, hyper_width=8)
+    model.track_code_range(torch.tensor([[-0.3], [0.3]]), reset=True)
+    q0, v0 = torch.tensor([[0.1]]), torch.zeros(1, 1)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        exact = model.rollout(q0, v0, 0.05, 3, integrator=Recording())
+        model.set_tabulation({})
+        table = model.rollout(q0, v0, 0.05, 3, integrator=Recording())
+        assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(threads)
+    assert seen == [2, 1]  # the exact pullback keeps the caller's threads, the table runs on one
+    torch.testing.assert_close(table.q, exact.q, atol=1e-4, rtol=0)

@@ -18,7 +18,6 @@ the caller's to drop (``free_dofs``).
 """
 from __future__ import annotations
 
-import contextlib
 import logging
 from pathlib import Path
 from typing import Any, Optional, Sequence, Union
@@ -30,6 +29,7 @@ import torch
 from skfem.helpers import ddot, grad
 
 from lnf.fem.materials import HyperelasticMaterial, determinant
+from lnf.threads import one_torch_thread
 
 log = logging.getLogger("lnf.fem")
 
@@ -40,18 +40,6 @@ ELEMENTS: dict[type, type] = {
     skfem.MeshTet1: skfem.ElementTetP1,
     skfem.MeshHex1: skfem.ElementHex1,
 }
-
-
-@contextlib.contextmanager
-def _one_torch_thread() -> Any:
-    """Evaluate the material on one torch thread: its tensors are many 2 × 2 or 3 × 3 matrices, whose batched
-    products cost more in thread hand-offs than they gain (on 2 busy cores, 55 ms against 0.7 ms for 10 240)."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(threads)
 
 
 @skfem.LinearForm
@@ -149,12 +137,12 @@ class ElasticBody:
         """W, P or A of the material at F (d, d, nel, nq), in scikit-fem's layout (components first)."""
         d = self.dim
         Ft = torch.from_numpy(np.ascontiguousarray(np.moveaxis(F, (0, 1), (-2, -1))))  # (nel, nq, d, d)
-        with torch.no_grad(), _one_torch_thread():
+        with torch.no_grad(), one_torch_thread():
             if what == "W":
                 return self.material.energy_density(Ft).numpy()
             if what == "P":
                 return np.moveaxis(self.material.first_piola(Ft).numpy(), (-2, -1), (0, 1))
-        with _one_torch_thread():
+        with one_torch_thread():
             A = self.material.tangent(Ft).detach().numpy()  # (nel, nq, d, d, d, d)
         return np.moveaxis(A, (-4, -3, -2, -1), (0, 1, 2, 3)).reshape(d, d, d, d, *F.shape[2:])
 
@@ -163,7 +151,7 @@ class ElasticBody:
         (…, d, d) with `components_last`."""
         if not self.material.needs_positive_jacobian:
             return
-        with _one_torch_thread():
+        with one_torch_thread():
             Ft = torch.from_numpy(F if components_last else np.ascontiguousarray(np.moveaxis(F, (0, 1), (-2, -1))))
             J = determinant(Ft).numpy()
         low = self.material.min_jacobian
@@ -205,7 +193,7 @@ class ElasticBody:
         F = self._batched_gradients(u)  # (B, nel, nq, d, d)
         if self.material.needs_positive_jacobian:
             self._check_inverted(F, "internal_force", components_last=True)
-        with torch.no_grad(), _one_torch_thread():
+        with torch.no_grad(), one_torch_thread():
             P = self.material.first_piola(torch.from_numpy(F)).numpy()
         weighted = (P * self.basis.dx[None, :, :, None, None]).transpose(3, 4, 1, 2, 0).reshape(-1, B)
         return -(self.gradient_operator.T @ weighted).T.reshape(B, self.n_nodes, d)
@@ -220,7 +208,7 @@ class ElasticBody:
     def strain_energy(self, u: np.ndarray) -> np.ndarray:
         """∫ W(I + ∇_X u) dX (B,) [J] for u (B, nn, d)."""
         F = self._batched_gradients(np.asarray(u, dtype=np.float64))
-        with torch.no_grad(), _one_torch_thread():
+        with torch.no_grad(), one_torch_thread():
             W = self.material.energy_density(torch.from_numpy(F)).numpy()  # (B, nel, nq)
         return (W * self.basis.dx[None]).sum((1, 2))
 
@@ -232,7 +220,7 @@ class ElasticBody:
         F = self._batched_gradients(np.asarray(u, dtype=np.float64)[None])[0]  # (nel, nq, d, d)
         if self.material.needs_positive_jacobian:
             self._check_inverted(F, "tangent_stiffness", components_last=True)
-        with _one_torch_thread():
+        with one_torch_thread():
             A = self.material.tangent(torch.from_numpy(F)).detach().numpy()  # (nel, nq, d, d, d, d)
         nel, nq = self.basis.dx.shape
         wA = A * self.basis.dx[:, :, None, None, None, None]
