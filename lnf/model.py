@@ -25,6 +25,7 @@ import torch
 from torch import Tensor, nn
 
 from lnf.boundary import ClampedField
+from lnf.closure import ClosedDynamics, PotentialClosure
 from lnf.dynamics_kind import dynamics_kind
 from lnf.quadrature import Quadrature, QuadratureRule
 from lnf.reduced_model import ReducedModel, as_field
@@ -221,6 +222,7 @@ class LagrangianNeuralField(ReducedModel):
         pod_degree: int = 12,
         energy_weight: float = 0.0,
         dynamics_weight: float = 0.0,
+        closure_degree: int = 0,
         gradient_weight: float = 0.0,
         mass_condition_weight: float = 1.0,
         mass_condition_max: float = 100.0,
@@ -254,6 +256,9 @@ class LagrangianNeuralField(ReducedModel):
             zero_output(self.field)
             linear = LinearEmbedding(scene.bounds, int(latent_dim), scene.field_dim, pod_degree)
             self.field = SubspacePlusField(linear, self.field)
+        require("model.closure_degree", closure_degree)
+        # a potential closure ΔṼ fitted after training (lnf/closure.py); its buffers travel in the checkpoint
+        self.closure = PotentialClosure(latent_dim, closure_degree) if int(closure_degree) else None
         self.reduction_steps = int(reduction_steps)
         require("model.reduction_starts", reduction_starts)
         require("model.start_radius", start_radius)
@@ -316,12 +321,17 @@ class LagrangianNeuralField(ReducedModel):
         return reduce(field, points, values, density, self.step_size, steps, codes=codes)
 
     def dynamics(self, quadrature: "Quadrature | QuadratureRule | None" = None) -> Any:
-        """The pulled-back Lagrangian system (tabulated if ``tabulation`` is set), or the learned latent
-        dynamics of the black-box baseline.
+        """The pulled-back Lagrangian system (tabulated if ``tabulation`` is set; with its potential closure ΔṼ
+        once fitted, lnf/closure.py), or the learned latent dynamics of the black-box baseline.
 
         A table is built once per quadrature and parameter state (cached until the parameters change)."""
         if self.latent_dynamics is not None:
             return self.latent_dynamics.as_dynamics(self.lagrangian_dynamics(quadrature))
+        base = self._pullback(quadrature)
+        return ClosedDynamics(base, self.closure) if self.closure is not None and self.closure.active else base
+
+    def _pullback(self, quadrature: "Quadrature | QuadratureRule | None") -> Any:
+        """The pulled-back Lagrangian system, from its table if ``tabulation`` is set."""
         if self.tabulation is None:
             return self.lagrangian_dynamics(quadrature)
         key = (id(quadrature), quadrature, tuple(p._version for p in self.parameters()),

@@ -57,6 +57,7 @@ class ReducedModel(nn.Module):
         self.scene = scene
         self.quadrature_rule = quadrature if quadrature is not None else GaussLegendre(8)
         self.checkpoint: dict[str, Any] = {}
+        self.closure: Optional[nn.Module] = None  # a potential closure ΔṼ fitted after training (lnf/closure.py)
 
     @property
     def latent_dim(self) -> int:
@@ -201,11 +202,14 @@ class ReducedModel(nn.Module):
 
     def energy(self, q: Tensor, v: Tensor, quadrature: "Quadrature | QuadratureRule | None" = None
                ) -> tuple[Tensor, Tensor]:
-        """(T̃, Ṽ) of reduced states q̃, q̃̇ (..., d) → each (...): the scene's energy pulled back through φ (inputs
-        of another dtype are converted to the model's)."""
+        """(T̃, Ṽ) of reduced states q̃, q̃̇ (..., d) → each (...): the scene's energy pulled back through φ, plus a
+        fitted potential closure ΔṼ where the model has one (inputs of another dtype are converted to the model's)."""
         q, v = self.as_model(q), self.as_model(v)
         with torch.no_grad():
-            return self.lagrangian_dynamics(quadrature).energies(q, v)
+            kinetic, potential = self.lagrangian_dynamics(quadrature).energies(q, v)
+            if self.closure is not None and self.closure.active:  # the closed system's energy (lnf/closure.py)
+                potential = potential + self.closure.potential(q.reshape(-1, q.shape[-1])).reshape(potential.shape)
+            return kinetic, potential
 
     def extra_repr(self) -> str:
         return f"scene={self.scene!r}, quadrature={self.quadrature_rule.describe()}"

@@ -24,8 +24,8 @@ from lnf.training.console import quiet_console
 from lnf.training.signals import ended_by_sigterm
 from lnf.training.run_checks import (build_scene, check_resumed_scene, check_resumed_settings, check_run_scene,
                                      check_settings, scene_needs)
-from lnf.training.run_report import (budget_sentence, fit_latent_dynamics, run_record, stop_reason, training_budget,
-                                     wandb_hints)
+from lnf.training.run_report import (budget_sentence, fit_closure, fit_latent_dynamics, run_record, stop_reason,
+                                     training_budget, wandb_hints)
 from lnf.training.run_setup import (build_trainer, fit_subspace_first, model_settings, optimized_value,
                                     provisional_w0, with_chosen_w0)
 from lnf.training.checkpoints import resume_checkpoint
@@ -110,6 +110,8 @@ def _train(cfg: DictConfig) -> dict[str, float]:
         fit_info.update(model.fit_to_observations(torch.as_tensor(points), torch.as_tensor(values)))
     if getattr(model, "latent_dynamics", None) is not None:
         fit_info.update(fit_latent_dynamics(model, datamodule))
+    if model.closure is not None:  # model.closure_degree > 0: ΔṼ fitted to the training motion (lnf/closure.py)
+        fit_info.update(fit_closure(model, datamodule, evaluation.spec))
     train_seconds = time.perf_counter() - start
     budget = training_budget(trainer, model.trainable)
     trainer.test(module, datamodule=datamodule, verbose=False)

@@ -1,0 +1,151 @@
+"""A potential closure of the pulled-back dynamics, fitted to the observed motion after training.
+
+The pulled-back equations M̃q̃̈ + c̃ + g̃ = τ̃ are exact only where φ's manifold is invariant under the continuum's
+motion. A low-dimensional manifold of an elastic body is not: along the encoded training trajectories the residual
+r = M̃q̃̈ + c̃ + g̃ − τ̃ (q̃̈ by finite differences of the encoded velocities) is several per cent of the forces, and
+over many periods that becomes a phase error. The closure adds a potential ΔṼ(q̃), a polynomial of total degree
+1 … p in the scaled codes x = (q̃ − c)/s, whose gradient is fitted to −r by ridge least squares:
+
+    L̃ = T̃(q̃, q̃̇) − Ṽ(q̃) − ΔṼ(q̃),    M̃q̃̈ + c̃ + g̃ + ∇ΔṼ = τ̃.
+
+The reduced system stays Lagrangian (its energy T̃ + Ṽ + ΔṼ is conserved, the symplectic integrators apply), but
+it is no longer the pure pullback of the known Lagrangian: ΔṼ is fitted to data, in the spirit of Operator
+Inference, on top of the physics. Off by default (``model.closure_degree: 0``).
+"""
+from __future__ import annotations
+
+import itertools
+from typing import Any, Optional
+
+import torch
+from torch import Tensor, nn
+
+from lnf.dynamics import solve_mass
+
+
+def monomial_exponents(latent_dim: int, degree: int) -> Tensor:
+    """Exponents (P, d) of every monomial of total degree 1 … `degree` in d variables: the linear ones give a
+    constant force (a shifted equilibrium), the quadratic ones a stiffness, the higher ones its amplitude dependence;
+    the span does not depend on where the variables are centred."""
+    rows = []
+    for total in range(1, degree + 1):
+        for combo in itertools.combinations_with_replacement(range(latent_dim), total):
+            rows.append([combo.count(i) for i in range(latent_dim)])
+    return torch.tensor(rows, dtype=torch.long)
+
+
+class PotentialClosure(nn.Module):
+    """ΔṼ(q̃) = Σ_p θ_p Π_i x_i^{E_pi}, x = (q̃ − center)/scale, for a d-dimensional code; all zeros until fitted.
+
+    Args:
+        latent_dim: d.
+        degree: the largest total degree p ≥ 2 (2: a constant force and a linear stiffness correction).
+    """
+
+    def __init__(self, latent_dim: int, degree: int) -> None:
+        super().__init__()
+        if int(degree) < 2:
+            raise ValueError(f"model.closure_degree must be 0 (no closure) or ≥ 2, got {degree!r}")
+        self.register_buffer("exponents", monomial_exponents(int(latent_dim), int(degree)))
+        self.register_buffer("center", torch.zeros(int(latent_dim)))
+        self.register_buffer("scale", torch.ones(int(latent_dim)))
+        self.register_buffer("coef", torch.zeros(len(self.exponents)))
+
+    @property
+    def active(self) -> bool:
+        return bool(self.coef.abs().sum() > 0)
+
+    def _scaled(self, q: Tensor) -> Tensor:
+        return (q - self.center.to(q)) / self.scale.to(q)
+
+    def potential(self, q: Tensor) -> Tensor:
+        """ΔṼ (B,) at codes (B, d)."""
+        x = self._scaled(q)
+        return (x[:, None, :] ** self.exponents.to(x)).prod(-1) @ self.coef.to(x)
+
+    def basis_gradients(self, q: Tensor) -> Tensor:
+        """∂(monomial p)/∂q̃_i (B, d, P) at codes (B, d)."""
+        x = self._scaled(q)
+        E = self.exponents.to(x)
+        powers = x[:, None, :] ** E  # (B, P, d)
+        lower = E * x[:, None, :] ** (E - 1).clamp_min(0)  # d/dx_i of x_i^{E_pi}
+        cols = []
+        for i in range(x.shape[1]):
+            others = torch.cat([powers[..., :i], powers[..., i + 1:]], -1).prod(-1)
+            cols.append(lower[..., i] * others / self.scale[i].to(x))
+        return torch.stack(cols, 1)
+
+    def gradient(self, q: Tensor) -> Tensor:
+        """∇ΔṼ (B, d) at codes (B, d)."""
+        return self.basis_gradients(q) @ self.coef.to(q)
+
+    def fit(self, codes: Tensor, residual: Tensor, regularizer: float) -> float:
+        """Fit ∇ΔṼ(q̃) ≈ −r by ridge least squares (λ × the mean diagonal of the normal matrix); codes and residuals
+        (B, d). Sets center and scale from the codes (their mean and largest deviation). Returns the relative misfit
+        ‖∇ΔṼ + r‖ / ‖r‖."""
+        q, r = codes.detach().double().reshape(-1, codes.shape[-1]), residual.detach().double().reshape(-1, codes.shape[-1])
+        self.center.copy_(q.mean(0))
+        self.scale.copy_((q - q.mean(0)).abs().amax(0).clamp_min(1e-6))
+        A = self.basis_gradients(q).reshape(-1, len(self.coef))  # rows (b, i), columns p
+        y = -r.reshape(-1)
+        normal = A.T @ A
+        ridge = float(regularizer) * float(normal.diagonal().mean().clamp_min(1e-300))
+        coef = torch.linalg.solve(normal + ridge * torch.eye(len(normal), dtype=normal.dtype), A.T @ y)
+        self.coef.copy_(coef)
+        return float((A @ coef - y).norm() / y.norm().clamp_min(1e-300))
+
+    def reset(self) -> None:
+        """No closure (ΔṼ = 0)."""
+        self.coef.zero_()
+
+
+class ClosedDynamics:
+    """A reduced dynamics (exact or tabulated pullback) with a fitted potential closure ΔṼ added: forces −∇ΔṼ,
+    energies + ΔṼ. Everything else (the mass, loads through ``controls``, table counters) is the base's."""
+
+    def __init__(self, base: Any, closure: PotentialClosure) -> None:
+        self.__dict__["base"] = base
+        self.__dict__["closure"] = closure
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.base, name)
+
+    def __setattr__(self, name: str, value: Any) -> None:  # e.g. controls: the base's forces read them
+        setattr(self.base, name, value)
+
+    def acceleration(self, q: Tensor, v: Tensor, t: float = 0.0) -> Tensor:
+        return self.base.acceleration(q, v, t) - solve_mass(self.base.mass_matrix(q), self.closure.gradient(q))
+
+    def hamiltonian_derivatives(self, q: Tensor, p: Tensor, t: float = 0.0) -> tuple[Tensor, Tensor]:
+        v, force = self.base.hamiltonian_derivatives(q, p, t)
+        return v, force - self.closure.gradient(q)
+
+    def potential_energy(self, q: Tensor) -> Tensor:
+        return self.base.potential_energy(q) + self.closure.potential(q)
+
+    def energies(self, q: Tensor, v: Tensor) -> tuple[Tensor, Tensor]:
+        kinetic, potential = self.base.energies(q, v)
+        extra = self.closure.potential(q.reshape(-1, q.shape[-1])).reshape(potential.shape)
+        return kinetic, potential + extra
+
+
+def code_accelerations(velocities: Tensor, dt: float) -> Tensor:
+    """q̃̈ at the inner samples 2 … T−3 of code velocities (n, T, d): the fourth-order central difference, (n, T−4, d)."""
+    v = velocities
+    return (-v[:, 4:] + 8 * v[:, 3:-1] - 8 * v[:, 1:-3] + v[:, :-4]) / (12 * dt)
+
+
+def equation_residual(dynamics: Any, codes: Tensor, velocities: Tensor, dt: float, t0: float = 0.0,
+                      controls: Optional[Tensor] = None) -> tuple[Tensor, Tensor]:
+    """r = M̃q̃̈ + c̃ + g̃ − τ̃ of encoded trajectories (codes, velocities (n, T, d), every `dt` [s] from `t0`, loads
+    `controls` (n, c) or None) at their inner samples: (codes (n, T−4, d), r (n, T−4, d))."""
+    accel = code_accelerations(velocities, dt)
+    q, v = codes[:, 2:-2], velocities[:, 2:-2]
+    out = []
+    for k in range(q.shape[1]):  # one time per call: a forced scene's loads depend on t
+        if controls is not None:
+            dynamics.controls = controls.to(q)
+        mass = dynamics.mass_matrix(q[:, k])
+        model_accel = dynamics.acceleration(q[:, k], v[:, k], t0 + (k + 2) * dt)
+        out.append(torch.einsum("bij,bj->bi", mass, accel[:, k] - model_accel))
+    return q, torch.stack(out, 1)

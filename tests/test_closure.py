@@ -1,0 +1,103 @@
+"""The potential closure (lnf/closure.py): a polynomial ΔṼ fitted to the residual of the pulled-back equations."""
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+import torch
+
+from helpers import ROOT, TINY, run_cli
+from lnf.closure import ClosedDynamics, PotentialClosure, equation_residual, monomial_exponents
+from lnf.integrators import get_integrator
+from test_dynamics import _pendulum_dynamics
+
+
+def test_the_monomials_are_every_total_degree_from_two_up():
+    assert monomial_exponents(2, 3).tolist() == [[1, 0], [0, 1], [2, 0], [1, 1], [0, 2], [3, 0], [2, 1], [1, 2], [0, 3]]
+    assert len(monomial_exponents(4, 4)) == 4 + 10 + 20 + 35
+    with pytest.raises(ValueError, match=r"closure_degree must be 0 \(no closure\) or ≥ 2, got 1"):
+        PotentialClosure(2, 1)
+
+
+def test_the_gradient_is_the_potentials_and_a_polynomial_residual_is_fitted_exactly():
+    torch.manual_seed(0)
+    truth = PotentialClosure(2, 4).double()
+    truth.center.copy_(torch.tensor([0.3, -0.2]))
+    truth.scale.copy_(torch.tensor([0.5, 2.0]))
+    truth.coef.copy_(torch.randn(len(truth.coef)))
+    q = torch.randn(200, 2, dtype=torch.float64, requires_grad=True)
+    auto = torch.autograd.grad(truth.potential(q).sum(), q)[0]
+    torch.testing.assert_close(truth.gradient(q), auto)
+    fitted = PotentialClosure(2, 4).double()
+    misfit = fitted.fit(q.detach(), -truth.gradient(q).detach(), 1e-12)
+    assert misfit < 1e-6 and fitted.active
+    torch.testing.assert_close(fitted.gradient(q), truth.gradient(q), rtol=1e-6, atol=1e-8)
+    fitted.reset()
+    assert not fitted.active and fitted.potential(q).abs().max() == 0
+
+
+def test_the_closed_pendulum_conserves_its_closed_energy_and_adds_the_closure_force(pendulum):
+    base = _pendulum_dynamics(pendulum)
+    closure = PotentialClosure(1, 3).double()
+    closure.coef.copy_(torch.tensor([0.0, 2.0, -0.5]))  # ΔṼ = 2 q² − 0.5 q³
+    closed = ClosedDynamics(base, closure)
+    q, v = torch.tensor([[0.4], [-0.2]], dtype=torch.float64), torch.tensor([[0.3], [1.0]], dtype=torch.float64)
+    mass = base.mass_matrix(q)[:, 0]
+    torch.testing.assert_close(closed.acceleration(q, v),
+                               base.acceleration(q, v) - (4 * q - 1.5 * q ** 2) / mass)
+    closed.controls = None  # set on the base, as a rollout sets a forced scene's loads
+    assert base.controls is None and closed.kind == base.kind
+    traj = get_integrator("implicit_midpoint").integrate(closed, q, v, 0.01, 400)
+    kinetic, potential = closed.energies(traj.q, traj.v)
+    energy = kinetic + potential
+    assert (energy - energy[:, :1]).abs().max() < 1e-6 * energy.abs().max()
+    plain_kinetic, plain_potential = base.energies(traj.q, traj.v)
+    assert (plain_kinetic + plain_potential - energy).abs().max() > 1e-3  # the closure's energy is in it
+
+
+def test_the_residual_of_the_models_own_motion_vanishes_and_another_motions_is_fitted(pendulum):
+    base = _pendulum_dynamics(pendulum)
+    q0 = torch.tensor([[0.5], [-0.8], [1.1]], dtype=torch.float64)
+    dt = 0.01
+    own = get_integrator("rk4").integrate(base, q0, torch.zeros_like(q0), dt, 200)
+    _, residual = equation_residual(base, own.q, own.v, dt)
+    forces = (base.mass_matrix(own.q[:, 0]) @ base.acceleration(own.q[:, 0], own.v[:, 0])[..., None]).abs().max()
+    assert residual.abs().max() < 1e-5 * forces  # the stencil's error, (ω dt)⁴/30 of an acceleration
+    truth = PotentialClosure(1, 2).double()  # a stiffer spring: motion of base + ΔṼ, explained by ΔṼ
+    truth.coef.copy_(torch.tensor([0.0, 3.0]))
+    other = get_integrator("rk4").integrate(ClosedDynamics(base, truth), q0, torch.zeros_like(q0), dt, 200)
+    codes, residual = equation_residual(base, other.q, other.v, dt)
+    fitted = PotentialClosure(1, 4).double()
+    assert fitted.fit(codes, residual, 1e-10) < 1e-4
+    grid = torch.linspace(-0.8, 1.1, 7, dtype=torch.float64)[:, None]
+    torch.testing.assert_close(fitted.gradient(grid), truth.gradient(grid), rtol=1e-3, atol=1e-4)
+
+
+@pytest.mark.slow
+def test_a_run_fits_the_closure_and_its_checkpoint_loads_with_it(tmp_path):
+    from lnf import load
+
+    run = tmp_path / "run"
+    run_cli(["+experiment=pendulum", "trainer=smoke", "trainer.max_epochs=2", "logger=csv", "threads=1", *TINY,
+             "model.closure_degree=3", "evaluation.val_trajectories=1", f"hydra.run.dir={run}"], tmp_path)
+    metrics = json.loads((run / "metrics.json").read_text())
+    for key in ("closure_regularizer", "closure_val_error", "closure_pullback_val_error", "closure_seconds"):
+        assert key in metrics
+    assert metrics["closure_val_error"] <= metrics["closure_pullback_val_error"]  # never worse on validation
+    model = load(run / "checkpoints" / "last.ckpt")
+    assert model.closure is not None and len(model.closure.coef) == 3
+    assert model.closure.active == (metrics["closure_regularizer"] > 0)
+    assert isinstance(model.dynamics(), ClosedDynamics) == model.closure.active
+    # the ablation script on the same checkpoint: its test errors without and with a closure fitted the same way
+    out = tmp_path / "ablation"
+    env = {**os.environ, "LNF_ROOT": str(tmp_path)}
+    proc = subprocess.run([sys.executable, "-m", "experiments.closure_ablation", "--ckpt",
+                           str(run / "checkpoints" / "last.ckpt"), "--degree", "2", "--threads", "1", "--out", str(out)],
+                          cwd=ROOT, env=env, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    row = json.loads((out / "closure.json").read_text())["rows"][0]
+    assert row["degree"] == 2 and set(row["plain"]) == set(row["closed"]) and "after horizon" in (out / "summary.md").read_text()
+    bad = subprocess.run([sys.executable, "-m", "experiments.closure_ablation", "--ckpt", str(tmp_path / "none.ckpt")],
+                         cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert bad.returncode != 0 and "--ckpt: no such file" in bad.stderr
