@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import datetime
 import json
+import logging
 import platform
 import time
 from pathlib import Path
@@ -93,6 +94,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--out", type=Path, default=ROOT / "outputs" / "studies" / "closure_ablation")
     parser.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
     args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="[%(name)s] %(message)s")  # the fit's candidates and choice
     if args.degree < 2:
         raise SystemExit(f"--degree must be ≥ 2, got {args.degree}")
     missing = [str(c) for c in args.ckpt if not c.is_file()]

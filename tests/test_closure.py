@@ -10,7 +10,7 @@ import torch
 from helpers import ROOT, TINY, run_cli
 from lnf.closure import ClosedDynamics, PotentialClosure, equation_residual, monomial_exponents
 from lnf.integrators import get_integrator
-from test_dynamics import _pendulum_dynamics
+from test_dynamics import _nonlinear_setup, _pendulum_dynamics
 
 
 def test_the_monomials_are_every_total_degree_from_two_up():
@@ -54,6 +54,21 @@ def test_the_closed_pendulum_conserves_its_closed_energy_and_adds_the_closure_fo
     assert (energy - energy[:, :1]).abs().max() < 1e-6 * energy.abs().max()
     plain_kinetic, plain_potential = base.energies(traj.q, traj.v)
     assert (plain_kinetic + plain_potential - energy).abs().max() > 1e-3  # the closure's energy is in it
+
+
+@pytest.mark.parametrize("integrator", ["rk4", "implicit_midpoint"])
+def test_a_closed_2d_system_conserves_its_closed_energy_in_both_forms(integrator):
+    _, base, _ = _nonlinear_setup()  # a 2-D pullback with a configuration-dependent mass
+    closure = PotentialClosure(2, 3).double()  # a stiffer, slightly anharmonic well
+    closure.coef.copy_(torch.tensor([0.0, 0.0, 0.5, 0.1, 0.5, 0.05, 0.0, -0.03, 0.02], dtype=torch.float64))
+    closed = ClosedDynamics(base, closure)
+    q0 = torch.tensor([[0.3, -0.2], [0.1, 0.4]], dtype=torch.float64)
+    v0 = torch.tensor([[0.2, 0.1], [-0.3, 0.2]], dtype=torch.float64)
+    traj = get_integrator(integrator).integrate(closed, q0, v0, 0.005, 150)  # the toy runs away after ~1.5 s
+    kinetic, potential = closed.energies(traj.q, traj.v)
+    energy = kinetic + potential
+    assert (energy - energy[:, :1]).abs().max() < 1e-7 * (1 + energy.abs().max())
+    assert (sum(base.energies(traj.q, traj.v)) - energy).abs().max() > 1e-3  # the closure's energy is in it
 
 
 def test_the_residual_of_the_models_own_motion_vanishes_and_another_motions_is_fitted(pendulum):
