@@ -371,6 +371,8 @@ def plot(study: S.Study, rows: list[dict], simulator: dict | None = None) -> lis
 def describe(row: dict, dim: int = 2) -> str:
     """A short name of one point's settings (width, k or grid; the re-evaluation's dynamics, integrator and dt) on a
     `dim`-D body."""
+    if row.get("knob") == "r":  # Operator Inference: its POD rank (twice the latent dimension it stands beside)
+        return f"r {row['rank']}"
     parts = [f"{k} {row[key]}" for k, key in [("width", "model.width"), ("depth", "model.depth"),
                                                 ("K", "model.reduction_steps"), ("d/k", "model.latent_dim"),
                                                 ("grid", "model.resolution")] if row.get(key) not in (None, "")]
