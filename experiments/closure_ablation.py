@@ -3,7 +3,7 @@
     python -m experiments.closure_ablation --ckpt outputs/studies/pareto-elastic/lnf_width/*/checkpoints/last.ckpt
     python -m experiments.closure_ablation --ckpt A.ckpt B.ckpt --degree 4 --out outputs/studies/closure
 
-For each checkpoint (an lnf model, trained with or without ``model.closure_degree``): its dataset (generated if
+For each checkpoint (an lnf model, trained with or without ``model.closure_degree``, or POD-Galerkin's): its dataset (generated if
 missing, as lnf.evaluate finds it), the test rollouts of the pure pullback, then the closure fitted exactly as
 ``python -m lnf.train ... model.closure_degree=<p>`` fits it after training (lnf.training.run_report.fit_closure:
 the residual of the pulled-back equations along the encoded training trajectories, the regularizer, or none, chosen on
@@ -50,8 +50,8 @@ def run_integrator(ckpt: Path) -> Any:
 def ablate(ckpt: Path, degree: int) -> dict[str, Any]:
     """Test metrics of `ckpt` without and with a closure of `degree` (fitted here), and the fit's record."""
     model = load(ckpt)
-    if not hasattr(model, "lagrangian_dynamics") or getattr(model, "latent_dynamics", None) is not None:
-        raise SystemExit(f"--ckpt {ckpt}: {type(model).__name__} has no pulled-back dynamics to close")
+    if getattr(model, "latent_dynamics", None) is not None or model.state_is_field:
+        raise SystemExit(f"--ckpt {ckpt}: {type(model).__name__} has no reduced pulled-back dynamics to close")
     dm = datamodule_of(model)
     spec = EvaluationSpec(integrator=run_integrator(ckpt), label="test rollout", figures=0)
     test = EvaluationData.of_split(dm.split("test"), model.scene)
@@ -59,13 +59,13 @@ def ablate(ckpt: Path, degree: int) -> dict[str, Any]:
     model.closure = None
     with torch.no_grad():
         plain = evaluate_model(model, test, spec).metrics
-    model.closure = PotentialClosure(model.field.latent_dim, degree)
+    model.closure = PotentialClosure(model.latent_dim, degree)
     start = time.perf_counter()
     fit = fit_closure(model, dm, spec)
     fit_seconds = time.perf_counter() - start
     with torch.no_grad():
         closed = evaluate_model(model, test, spec).metrics if model.closure.active else plain
-    return {"checkpoint": str(ckpt), "latent_dim": int(model.field.latent_dim), "degree": degree,
+    return {"checkpoint": str(ckpt), "latent_dim": int(model.latent_dim), "degree": degree,
             "plain": {k: float(plain[k]) for k, _ in KEYS if k in plain},
             "closed": {k: float(closed[k]) for k, _ in KEYS if k in closed}, "fit": fit, "fit_seconds": fit_seconds}
 

@@ -25,7 +25,7 @@ import torch
 from torch import Tensor, nn
 
 from lnf.boundary import ClampedField
-from lnf.closure import ClosedDynamics, PotentialClosure
+from lnf.closure import PotentialClosure
 from lnf.dynamics_kind import dynamics_kind
 from lnf.quadrature import Quadrature, QuadratureRule
 from lnf.reduced_model import ReducedModel, as_field
@@ -327,8 +327,7 @@ class LagrangianNeuralField(ReducedModel):
         A table is built once per quadrature and parameter state (cached until the parameters change)."""
         if self.latent_dynamics is not None:
             return self.latent_dynamics.as_dynamics(self.lagrangian_dynamics(quadrature))
-        base = self._pullback(quadrature)
-        return ClosedDynamics(base, self.closure) if self.closure is not None and self.closure.active else base
+        return self.closed(self._pullback(quadrature))
 
     def _pullback(self, quadrature: "Quadrature | QuadratureRule | None") -> Any:
         """The pulled-back Lagrangian system, from its table if ``tabulation`` is set."""

@@ -21,6 +21,7 @@ from typing import Any, Callable, Optional
 import torch
 from torch import Tensor, nn
 
+from lnf.closure import ClosedDynamics
 from lnf.dynamics import ReducedDynamics
 from lnf.integrators import Integrator, Trajectory, get_integrator
 from lnf.quadrature import GaussLegendre, Quadrature, QuadratureRule
@@ -167,8 +168,13 @@ class ReducedModel(nn.Module):
         return ReducedDynamics(field.jet, self.scene, quad.to(device=p.device, dtype=dtype or p.dtype))
 
     def dynamics(self, quadrature: "Quadrature | QuadratureRule | None" = None) -> Any:
-        """The dynamics that rollouts integrate (the pulled-back Lagrangian unless a subclass says otherwise)."""
-        return self.lagrangian_dynamics(quadrature)
+        """The dynamics that rollouts integrate (the pulled-back Lagrangian unless a subclass says otherwise), with
+        the model's closure once fitted."""
+        return self.closed(self.lagrangian_dynamics(quadrature))
+
+    def closed(self, dynamics: Any) -> Any:
+        """`dynamics` with the model's fitted closure added (lnf/closure.py), or as it is."""
+        return ClosedDynamics(dynamics, self.closure) if self.closure is not None and self.closure.active else dynamics
 
     def rollout(self, q0: Tensor, v0: Tensor, dt: float, steps: int,
                 integrator: "str | Integrator | dict" = "implicit_midpoint", record_every: int = 1,
