@@ -62,7 +62,7 @@ from lnf.evaluation_pipeline import (EvaluationData, EvaluationSpec, checkpoint_
 from lnf.model import load
 from lnf.tempfiles import write_json_atomic
 from lnf.train import fit_latent_dynamics
-from lnf.training.datamodule import SnapshotDataModule
+from lnf.training.datamodule import SnapshotDataModule, checkpoint_datamodule
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -71,11 +71,7 @@ def datamodule_of(model: Any) -> SnapshotDataModule:
     """The checkpoint's own dataset (generated if missing), found as lnf.evaluate finds it
     (:func:`lnf.evaluation_pipeline.checkpoint_data`): a data path outside the data folder is only read."""
     data_dir = Path(os.environ.get("LNF_DATA_DIR") or Path(os.environ.get("LNF_ROOT", ROOT)) / "data")
-    path, _ = checkpoint_data(model, data_dir.resolve())
-    record = {k: v for k, v in model.checkpoint["data"].items() if k != "checksum"}
-    dm = SnapshotDataModule(scene=model.scene, **{**record, "path": str(path), "explicit_path": True})
-    dm.prepare_data()
-    return dm
+    return checkpoint_datamodule(model, checkpoint_data(model, data_dir.resolve())[0])
 
 
 def evaluate(model: Any, split: Any, integrator: Any = None, states: np.ndarray | None = None,

@@ -9,12 +9,14 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
+from typing import Any
 
 import hydra
 import torch
 from omegaconf import DictConfig
 
 from lnf.allocator import keep_freed_memory
+from lnf.closure import PotentialClosure
 from lnf.dataset import load_split
 from lnf.evaluation_pipeline import checkpoint_data, ensure_code_range, evaluate_model, write_report
 from lnf.evaluation_settings import (check_budget, check_settings, choose_dynamics, planned_cost, rollout_request,
@@ -23,6 +25,8 @@ from lnf.model import load
 from lnf.run_lock import EVALUATION_RESULTS, run_folder_lock, set_aside
 from lnf.tempfiles import write_json_atomic
 from lnf.training.console import quiet_console
+from lnf.training.datamodule import checkpoint_datamodule
+from lnf.training.run_report import fit_closure
 from lnf.utils import print_summary, run_metadata
 
 log = logging.getLogger("lnf.evaluate")
@@ -63,10 +67,21 @@ def _evaluate(cfg: DictConfig) -> dict[str, float]:
         write_json_atomic(output_dir / "run.json", run_metadata(cfg))
 
     data, spec = rollout_request(cfg, model, split, path, provenance)
+    closure = {} if cfg.get("closure_degree") is None else fit_closure_first(model, int(cfg.closure_degree), path, spec)
     report = evaluate_model(model, data, spec)
-    write_report(report, output_dir, logger=log)
+    write_report(report, output_dir, extra=closure, logger=log)
     print_summary(report.metrics, title=f"{cfg.split} metrics of {cfg.ckpt_path}")
     return report.metrics
+
+
+def fit_closure_first(model: Any, degree: int, path: Path, spec: Any) -> dict[str, float]:
+    """``closure_degree=p``: fit a potential closure of degree p (lnf/closure.py) on the checkpoint's own training
+    trajectories, exactly as ``lnf.train ... model.closure_degree=p`` does after training; returns its record."""
+    if model.state_is_field or getattr(model, "latent_dynamics", None) is not None:
+        raise ValueError(f"closure_degree={degree}: a closure corrects reduced pulled-back dynamics; the checkpoint "
+                         f"holds a {type(model).__name__} without them")
+    model.closure = PotentialClosure(model.latent_dim, degree)
+    return fit_closure(model, checkpoint_datamodule(model, path), spec)
 
 
 @hydra.main(version_base="1.3", config_path="pkg://lnf.conf", config_name="evaluate")

@@ -113,6 +113,18 @@ def test_a_run_fits_the_closure_and_its_checkpoint_loads_with_it(tmp_path):
     assert proc.returncode == 0, proc.stderr[-3000:]
     row = json.loads((out / "closure.json").read_text())["rows"][0]
     assert row["degree"] == 2 and set(row["plain"]) == set(row["closed"]) and "after horizon" in (out / "summary.md").read_text()
+    # lnf.evaluate fits one on the checkpoint's training trajectories first, and refuses a degree below 2 by name
+    evaluated = tmp_path / "evaluated"
+    common = [sys.executable, "-m", "lnf.evaluate", f"ckpt_path={run / 'checkpoints' / 'last.ckpt'}", "figures=0",
+              "threads=1"]
+    proc = subprocess.run([*common, "closure_degree=2", f"hydra.run.dir={evaluated}"], cwd=ROOT, env=env,
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    fitted = json.loads((evaluated / "metrics.json").read_text())
+    assert fitted["closure_val_error"] <= fitted["closure_pullback_val_error"] and "field_rel_l2/all/median" in fitted
+    refused = subprocess.run([*common, "closure_degree=1", f"hydra.run.dir={tmp_path / 'refused'}"], cwd=ROOT, env=env,
+                             capture_output=True, text=True, timeout=300)
+    assert refused.returncode != 0 and "closure_degree" in refused.stderr and "≥ 2" in refused.stderr
     bad = subprocess.run([sys.executable, "-m", "experiments.closure_ablation", "--ckpt", str(tmp_path / "none.ckpt")],
                          cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert bad.returncode != 0 and "--ckpt: no such file" in bad.stderr

@@ -346,3 +346,12 @@ class SnapshotDataModule(pl.LightningDataModule):
     def describe_observations(self) -> dict[str, Any]:
         """How the training observations were corrupted (kept beside :meth:`describe` in checkpoints)."""
         return {"noise": self.noise}
+
+
+def checkpoint_datamodule(model: Any, path: "str | Path") -> SnapshotDataModule:
+    """The data module a checkpoint was trained with (its recorded data settings), on its dataset file at `path`
+    (found by :func:`lnf.evaluation_pipeline.checkpoint_data`; only read there if outside the data folder), prepared."""
+    record = {k: v for k, v in model.checkpoint["data"].items() if k != "checksum"}
+    dm = SnapshotDataModule(scene=model.scene, **{**record, "path": str(path), "explicit_path": True})
+    dm.prepare_data()
+    return dm
