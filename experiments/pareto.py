@@ -182,6 +182,17 @@ def tabulated_sweeps(study: S.Study) -> None:
                        "lnf.evaluate", {"method": "latent_mlp", "knob": "dt", "model.width": width})
 
 
+def closure_sweeps(study: S.Study) -> None:
+    """Our width sweep re-evaluated with a potential closure fitted on each model's training trajectories first
+    (``lnf.evaluate closure_degree=4``, method §5.6): the method "lnf_closure", at the same widths; under --smoke
+    the first width only."""
+    widths = checkpoints(study, "lnf_width")
+    for width, ckpt in widths[:1] if study.mode == "smoke" else widths:
+        study.multirun(f"closure_w{width}", ["figures=0", f"threads={study.threads}", f"ckpt_path={ckpt}",
+                                             "closure_degree=4"], "lnf.evaluate",
+                       {"method": "lnf_closure", "knob": "width", "model.width": width})
+
+
 def simulator_seconds(ckpt: Path, threads: int, trust: list[str] | None = None) -> dict:
     """Wall-clock per test trajectory of the scene's own full-order simulator over the test horizon (on a scene
     with an expensive reference, e.g. the elastic scenes' FEM), measured in this run (the faster of two): the
@@ -408,7 +419,7 @@ def against_operator_inference(rows: list[dict], latent_dim: int) -> str:
         return [r for r in rows if S.method_of(r) == m and not r["sweep"].startswith("ref_")
                 and np.isfinite(float(r.get(ERR, np.nan)))]
 
-    ours = finite("lnf")
+    ours = finite("lnf") + finite("lnf_closure")
     if not ours or not any(S.method_of(r).startswith("opinf") for r in rows):
         return ""
     best = min(ours, key=lambda r: float(r[ERR]))
@@ -522,6 +533,7 @@ def main(argv=None) -> None:
     study.long_check = False
     sweeps(study)
     tabulated_sweeps(study)
+    closure_sweeps(study)
     label = {"method": "lnf"}
     evaluation_sweeps(study, reference_checkpoint(study), "", label)
     if args.quadrature_ckpt:

@@ -136,8 +136,10 @@ def _methods(rows):
 def test_pareto_study_smoke(studies):
     out, stdout = _study("pareto", studies)
     rows = _csv(out / "pareto.csv")
-    assert _methods(rows) == {"lnf", "latent_mlp", "pod", "full_order", "opinf", "opinf_observed"}
+    assert _methods(rows) == {"lnf", "lnf_closure", "latent_mlp", "pod", "full_order", "opinf", "opinf_observed"}
     assert {r["knob"] for r in rows} >= {"width", "k", "resolution", "quadrature", "integrator", "tabulated", "r"}
+    closed = [r for r in rows if r["method"] == "lnf_closure"]  # the first width, its closure fitted by lnf.evaluate
+    assert len(closed) == 1 and float(closed[0]["closure_val_error"]) <= float(closed[0]["closure_pullback_val_error"])
     opinf = [r for r in rows if r["method"] == "opinf"]
     assert [(r["model.latent_dim"], r["rank"]) for r in opinf] == [("1", "2"), ("2", "4")]  # r = 2d: q̃ and q̃̇
     assert all(float(r["cost_seconds"]) > 0 and float(r["train_seconds"]) > 0 for r in opinf)
@@ -303,7 +305,7 @@ def test_pareto_study_smoke_on_the_elastic_scene(studies):
     and the FEM's own cost per trajectory is measured, drawn and compared."""
     out, _ = _study("pareto", studies, "--scene", "elastic", tag="-elastic")
     rows = _csv(out / "pareto.csv")
-    assert _methods(rows) == {"lnf", "latent_mlp", "pod", "opinf", "opinf_observed"}
+    assert _methods(rows) == {"lnf", "lnf_closure", "latent_mlp", "pod", "opinf", "opinf_observed"}
     assert any(r["knob"] == "exact" and r["dynamics"] == "lagrangian" for r in rows)
     assert not any(r["knob"] == "tabulated" for r in rows)
     simulator = json.loads((out / "simulator.json").read_text())
@@ -379,7 +381,7 @@ def test_pareto_and_scenes_run_the_vibrating_string_from_its_own_folder(tmp_path
     stdout = run("pareto", "--config-dir", os.path.relpath(EXAMPLES / "conf", work), *scene, "--out", "pareto")
     out = (work / "pareto").resolve()
     rows = _csv(out / "pareto.csv")
-    assert _methods(rows) == {"lnf", "latent_mlp", "pod", "opinf", "opinf_observed"}  # no full-order model in 1-D
+    assert _methods(rows) == {"lnf", "lnf_closure", "latent_mlp", "pod", "opinf", "opinf_observed"}  # no full-order model in 1-D
     assert "full order left out" in stdout
     assert {r["knob"] for r in rows} >= {"width", "k", "quadrature", "integrator", "tabulated"}
     assert all(r["dir"].startswith(str(out)) for r in rows)  # the relative --out, as the caller meant it

@@ -8,12 +8,15 @@ from typing import Any, Iterable, Optional, Sequence
 
 import numpy as np
 
-#: each method's name in words, colour and marker (the methods of ``METHODS`` and the two of Operator Inference)
-LABELS = {"lnf": "LNF (ours)", "latent_mlp": "black-box latent MLP", "pod": "POD-Galerkin", "full_order": "full order",
-          "opinf": "Operator Inference (full states)", "opinf_observed": "Operator Inference (sparse observations)"}
-COLORS = {"lnf": "tab:blue", "latent_mlp": "tab:red", "pod": "tab:green", "full_order": "tab:gray",
-          "opinf": "tab:purple", "opinf_observed": "tab:pink"}
-MARKERS = {"lnf": "o", "latent_mlp": "s", "pod": "^", "full_order": "D", "opinf": "v", "opinf_observed": "<"}
+#: each method's name in words, colour and marker (the methods of ``METHODS``, ours with the closure, and the two of
+#: Operator Inference)
+LABELS = {"lnf": "LNF (ours)", "lnf_closure": "LNF + closure (ours)", "latent_mlp": "black-box latent MLP",
+          "pod": "POD-Galerkin", "full_order": "full order", "opinf": "Operator Inference (full states)",
+          "opinf_observed": "Operator Inference (sparse observations)"}
+COLORS = {"lnf": "tab:blue", "lnf_closure": "tab:cyan", "latent_mlp": "tab:red", "pod": "tab:green",
+          "full_order": "tab:gray", "opinf": "tab:purple", "opinf_observed": "tab:pink"}
+MARKERS = {"lnf": "o", "lnf_closure": "h", "latent_mlp": "s", "pod": "^", "full_order": "D", "opinf": "v",
+           "opinf_observed": "<"}
 
 #: what a metric measures, in words, and its unit ("" where it has none): the first part of a metric key
 #: ``<quantity>/<subset>/<statistic>`` (docs/method.md §7.3), or a whole key without slashes

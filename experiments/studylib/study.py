@@ -28,7 +28,7 @@ METHODS: dict[str, list[str]] = {
 }
 # Operator Inference (experiments/operator_inference.py study_rows: fitted in the study's process, not a Hydra job)
 # "opinf" reads the full fine-grid training states; "opinf_observed" only lnf's sparse observations (gappy POD)
-CHARTED = (*METHODS, "opinf", "opinf_observed")
+CHARTED = (*METHODS, "lnf_closure", "opinf", "opinf_observed")
 COMMON = ["logger=csv", "evaluation.every_n_epochs=0", "evaluation.figures=0", "trainer.enable_progress_bar=false"]
 # Reduced settings (each study under 30 min on 2 CPU cores): smaller SIREN, 15 epochs, higher lr
 REDUCED_NEURAL = ["model.width=64", "model.hyper_width=64", "trainer.max_epochs=15", "optimizer.lr=2e-3"]
