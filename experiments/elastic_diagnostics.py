@@ -207,13 +207,15 @@ def equation_residual(model, points, fields, velocities, dt: float) -> dict[str,
     it). The difference underestimates an acceleration at frequency ω by about (ω dt)⁴/30 (0.2 % at ω dt = 0.5)."""
     import torch
 
+    from lnf.closure import code_accelerations
+
     n, T = fields.shape[:2]
     with torch.no_grad():
         flat = fields.reshape(n * T, *fields.shape[2:])
         q = model.reduce(points, flat)
         qdot = model.project_velocity(q, points, velocities.reshape(flat.shape))
         q, qdot = q.reshape(n, T, -1), qdot.reshape(n, T, -1)
-        qddot = (-qdot[:, 4:] + 8 * qdot[:, 3:-1] - 8 * qdot[:, 1:-3] + qdot[:, :-4]) / (12 * dt)
+        qddot = code_accelerations(qdot, dt)  # the stencil the closure fits with (lnf/closure.py)
         inner = (slice(None), slice(2, T - 2))
         ours = model.lagrangian_dynamics().acceleration(q[inner].reshape(-1, q.shape[-1]),
                                                         qdot[inner].reshape(-1, q.shape[-1])).reshape(qddot.shape)
