@@ -5,7 +5,7 @@
 
 For each checkpoint (an lnf model, trained with or without ``model.closure_degree``, or POD-Galerkin's): its dataset (generated if
 missing, as lnf.evaluate finds it), the test rollouts of the pure pullback, then the closure fitted exactly as
-``python -m lnf.train ... model.closure_degree=<p>`` fits it after training (lnf.training.run_report.fit_closure:
+``python -m lnf.train ... model.closure_degree=<p>`` fits it after training (lnf.closure_choice.fit_closure:
 the residual of the pulled-back equations along the encoded training trajectories, the regularizer, or none, chosen on
 validation rollouts within the training horizon), and the test rollouts again. The rollouts use the run's own
 integrator (its run.json beside the checkpoint folder; implicit midpoint if there is none). Writes closure.json and
@@ -29,7 +29,7 @@ from lnf.closure import PotentialClosure
 from lnf.evaluation_pipeline import EvaluationData, EvaluationSpec, evaluate_model
 from lnf.model import load
 from lnf.tempfiles import write_json_atomic, write_text_atomic
-from lnf.training.run_report import fit_closure
+from lnf.closure_choice import fit_closure
 
 ROOT = Path(__file__).resolve().parents[1]
 KEYS = [("field_rel_l2/in_horizon/median", "in horizon"), ("field_rel_l2/extrapolation/median", "after horizon"),

@@ -34,6 +34,11 @@ def monomial_exponents(latent_dim: int, degree: int) -> Tensor:
     return torch.tensor(rows, dtype=torch.long)
 
 
+class ClosureLeftItsRange(RuntimeError):
+    """A rollout of the closed dynamics left the range of the codes the closure was fitted on (by more than its
+    ``guard_margin``): the polynomial extrapolates there (raised only while a guard is set, e.g. while choosing)."""
+
+
 class PotentialClosure(nn.Module):
     """ΔṼ(q̃) = Σ_p θ_p Π_i x_i^{E_pi}, x = (q̃ − center)/scale, for a d-dimensional code; all zeros until fitted.
 
@@ -50,6 +55,9 @@ class PotentialClosure(nn.Module):
         self.register_buffer("center", torch.zeros(int(latent_dim)))
         self.register_buffer("scale", torch.ones(int(latent_dim)))
         self.register_buffer("coef", torch.zeros(len(self.exponents)))
+        #: None, or a margin (fraction of the fitted codes' span): codes beyond it raise ClosureLeftItsRange
+        self.guard_margin: Optional[float] = None
+        self._fitted_range: Optional[tuple[Tensor, Tensor]] = None
 
     @property
     def active(self) -> bool:
@@ -77,7 +85,17 @@ class PotentialClosure(nn.Module):
 
     def gradient(self, q: Tensor) -> Tensor:
         """∇ΔṼ (B, d) at codes (B, d)."""
+        self._check_range(q)
         return self.basis_gradients(q) @ self.coef.to(q)
+
+    def _check_range(self, q: Tensor) -> None:
+        if self.guard_margin is None or self._fitted_range is None:
+            return
+        low, high = (b.to(q) for b in self._fitted_range)
+        pad = self.guard_margin * (high - low)
+        if bool(((q < low - pad) | (q > high + pad)).any()):
+            raise ClosureLeftItsRange(f"codes left the closure's fitted range {low.tolist()}..{high.tolist()} by more "
+                                      f"than {self.guard_margin:g} of its span")
 
     def fit(self, codes: Tensor, residual: Tensor, regularizer: float) -> float:
         """Fit ∇ΔṼ(q̃) ≈ −r by ridge least squares (λ × the mean diagonal of the normal matrix); codes and residuals
@@ -86,6 +104,7 @@ class PotentialClosure(nn.Module):
         q, r = codes.detach().double().reshape(-1, codes.shape[-1]), residual.detach().double().reshape(-1, codes.shape[-1])
         self.center.copy_(q.mean(0))
         self.scale.copy_((q - q.mean(0)).abs().amax(0).clamp_min(1e-6))
+        self._fitted_range = (q.amin(0), q.amax(0))
         A = self.basis_gradients(q).reshape(-1, len(self.coef))  # rows (b, i), columns p
         y = -r.reshape(-1)
         normal = A.T @ A
@@ -114,11 +133,13 @@ class ClosedDynamics:
         setattr(self.base, name, value)
 
     def acceleration(self, q: Tensor, v: Tensor, t: float = 0.0) -> Tensor:
-        return self.base.acceleration(q, v, t) - solve_mass(self.base.mass_matrix(q), self.closure.gradient(q))
+        extra = self.closure.gradient(q)  # first: it raises where a guard is set and q̃ left the fitted range
+        return self.base.acceleration(q, v, t) - solve_mass(self.base.mass_matrix(q), extra)
 
     def hamiltonian_derivatives(self, q: Tensor, p: Tensor, t: float = 0.0) -> tuple[Tensor, Tensor]:
+        extra = self.closure.gradient(q)
         v, force = self.base.hamiltonian_derivatives(q, p, t)
-        return v, force - self.closure.gradient(q)
+        return v, force - extra
 
     def potential_energy(self, q: Tensor) -> Tensor:
         return self.base.potential_energy(q) + self.closure.potential(q)

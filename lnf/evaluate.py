@@ -26,7 +26,7 @@ from lnf.run_lock import EVALUATION_RESULTS, run_folder_lock, set_aside
 from lnf.tempfiles import write_json_atomic
 from lnf.training.console import quiet_console
 from lnf.training.datamodule import checkpoint_datamodule
-from lnf.training.run_report import fit_closure
+from lnf.closure_choice import fit_closure
 from lnf.utils import print_summary, run_metadata
 
 log = logging.getLogger("lnf.evaluate")

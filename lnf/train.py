@@ -16,6 +16,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from lnf.allocator import keep_freed_memory
+from lnf.closure_choice import fit_closure
 from lnf.config_keys import check_known_keys
 from lnf.run_lock import EVALUATION_RESULTS, run_folder_lock, set_aside
 from lnf.tempfiles import write_json_atomic
@@ -24,8 +25,8 @@ from lnf.training.console import quiet_console
 from lnf.training.signals import ended_by_sigterm
 from lnf.training.run_checks import (build_scene, check_resumed_scene, check_resumed_settings, check_run_scene,
                                      check_settings, scene_needs)
-from lnf.training.run_report import (budget_sentence, fit_closure, fit_latent_dynamics, run_record, stop_reason,
-                                     training_budget, wandb_hints)
+from lnf.training.run_report import (budget_sentence, fit_latent_dynamics, run_record, stop_reason, training_budget,
+                                     wandb_hints)
 from lnf.training.run_setup import (build_trainer, fit_subspace_first, model_settings, optimized_value,
                                     provisional_w0, with_chosen_w0)
 from lnf.training.checkpoints import resume_checkpoint
@@ -121,12 +122,8 @@ def _train(cfg: DictConfig) -> dict[str, float]:
     # a temporary name in the same folder, then renamed.
     trainer.save_checkpoint(output_dir / "checkpoints" / "last.ckpt")
 
-    metrics = {k: float(v) for k, v in evaluation.test_metrics.items()}
-    metrics["train_seconds"] = train_seconds
-    metrics["total_seconds"] = time.perf_counter() - start
-    metrics.update(fit_info)
-    metrics.update(chosen_settings)
-    metrics.update(budget)
+    metrics = {**{k: float(v) for k, v in evaluation.test_metrics.items()}, "train_seconds": train_seconds,
+               "total_seconds": time.perf_counter() - start, **fit_info, **chosen_settings, **budget}
     if hasattr(model, "step_size"):
         metrics["step_size"] = float(model.step_size.detach())
     metrics.update(fit_metrics)

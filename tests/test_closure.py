@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from helpers import ROOT, TINY, run_cli
-from lnf.closure import ClosedDynamics, PotentialClosure, equation_residual, monomial_exponents
+from lnf.closure import ClosedDynamics, ClosureLeftItsRange, PotentialClosure, equation_residual, monomial_exponents
 from lnf.integrators import get_integrator
 from test_dynamics import _nonlinear_setup, _pendulum_dynamics
 
@@ -35,6 +35,29 @@ def test_the_gradient_is_the_potentials_and_a_polynomial_residual_is_fitted_exac
     torch.testing.assert_close(fitted.gradient(q), truth.gradient(q), rtol=1e-6, atol=1e-8)
     fitted.reset()
     assert not fitted.active and fitted.potential(q).abs().max() == 0
+
+
+def test_while_a_guard_is_set_codes_beyond_the_fitted_range_raise_before_the_base_is_evaluated():
+    """The closure's choice rejects a candidate that carries a rollout off the training codes (its polynomial
+    extrapolates, and a tabulated base would fall back to the exact pullback at every step)."""
+    closure = PotentialClosure(1, 3).double()
+    closure.fit(torch.linspace(-1.0, 1.0, 50)[:, None].double(), torch.randn(50, 1).double(), 1e-8)
+
+    class Base:
+        calls = 0
+
+        def hamiltonian_derivatives(self, q, p, t=0.0):
+            Base.calls += 1
+            return p, -q
+
+    closed = ClosedDynamics(Base(), closure)
+    far = torch.tensor([[1.6]], dtype=torch.float64)
+    closed.hamiltonian_derivatives(far, far)  # no guard: anywhere
+    closure.guard_margin = 0.25
+    closed.hamiltonian_derivatives(torch.tensor([[1.4]], dtype=torch.float64), far)  # within 1 + 0.25 × 2
+    with pytest.raises(ClosureLeftItsRange, match=r"left the closure's fitted range \[-1.0\]..\[1.0\] by more than 0.25"):
+        closed.hamiltonian_derivatives(far, far)
+    assert Base.calls == 2
 
 
 def test_the_closed_pendulum_conserves_its_closed_energy_and_adds_the_closure_force(pendulum):

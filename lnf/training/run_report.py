@@ -5,7 +5,6 @@ from __future__ import annotations
 import inspect
 import json
 import logging
-import math
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
@@ -32,63 +31,6 @@ def fit_latent_dynamics(model: Any, datamodule: Any) -> dict[str, float]:
         info = model.latent_dynamics.fit(q, v, datamodule.dt)
     log.info("latent dynamics fitted in %.1f s (loss %.3e)", info["latent_fit_seconds"], info["latent_fit_loss"])
     return info
-
-
-#: the closure's candidate regularizers (ridge λ, relative to the normal matrix's mean diagonal)
-CLOSURE_REGULARIZERS = (1e-8, 1e-5, 1e-2)
-CLOSURE_VAL_TRAJECTORIES = 8
-
-
-def fit_closure(model: Any, datamodule: Any, spec: Any) -> dict[str, float]:
-    """Fit the model's potential closure ΔṼ (lnf/closure.py) after training: the pulled-back equations' residual
-    along the encoded training trajectories, a ridge fit per regularizer of :data:`CLOSURE_REGULARIZERS`, and the
-    one (or none: the pure pullback) whose rollouts of the first validation trajectories have the smallest field
-    error within the training horizon. `spec`: the test's EvaluationSpec (its integrator and decoding)."""
-    import dataclasses
-    import time
-
-    from lnf.closure import equation_residual
-    from lnf.evaluation_pipeline import EvaluationData, evaluate_model
-
-    start = time.perf_counter()
-    closure = model.closure
-    points, values, velocities = (torch.as_tensor(a) for a in datamodule.observations("train"))
-    model.eval()
-    train, val = datamodule.split("train"), datamodule.split("val")
-    controls = None if train.controls is None else torch.as_tensor(train.controls)
-    with torch.no_grad():
-        q, v = latent_trajectories(model, points, values, velocities)
-        codes, residual = equation_residual(model.lagrangian_dynamics(), q, v, datamodule.dt,
-                                            float(train.times[0]), controls)
-    data = EvaluationData.of_split(val, model.scene, CLOSURE_VAL_TRAJECTORIES)
-    check = dataclasses.replace(spec, split="val", label="closure choice: validation rollout", long_steps=0,
-                                figures=0, keep_fields=0, progress=False)
-
-    def val_error() -> float:
-        with torch.no_grad():
-            err = evaluate_model(model, data, check).metrics["field_rel_l2/in_horizon/median"]
-        return err if math.isfinite(err) else math.inf
-
-    closure.reset()
-    best = (val_error(), 0.0, 0.0)  # (error, λ, misfit); λ = 0: none
-    pullback_error = best[0]
-    for lam in CLOSURE_REGULARIZERS:
-        misfit = closure.fit(codes, residual, lam)
-        err = val_error()
-        log.info("closure λ = %.0e: misfit %.3f of the residual, validation field error %.4g in the horizon",
-                 lam, misfit, err)
-        if err < best[0]:
-            best = (err, lam, misfit)
-    if best[1] > 0:
-        closure.fit(codes, residual, best[1])
-    else:
-        closure.reset()
-    seconds = time.perf_counter() - start
-    log.info("potential closure: %s (validation field error %.4g in the horizon, the pure pullback's %.4g), %.1f s",
-             f"λ = {best[1]:.0e}, {len(closure.coef)} terms" if best[1] > 0 else "none (the pure pullback is best)",
-             best[0], pullback_error, seconds)
-    return {"closure_regularizer": best[1], "closure_val_error": best[0], "closure_pullback_val_error": pullback_error,
-            "closure_misfit": best[2], "closure_seconds": seconds}
 
 
 def build_loggers(cfg: DictConfig, output_dir: Path, resume: bool = False) -> list[Any]:
