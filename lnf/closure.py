@@ -20,8 +20,6 @@ from typing import Any, Optional
 import torch
 from torch import Tensor, nn
 
-from lnf.dynamics import solve_mass
-
 
 def monomial_exponents(latent_dim: int, degree: int) -> Tensor:
     """Exponents (P, d) of every monomial of total degree 1 … `degree` in d variables: the linear ones give a
@@ -134,7 +132,7 @@ class ClosedDynamics:
 
     def acceleration(self, q: Tensor, v: Tensor, t: float = 0.0) -> Tensor:
         extra = self.closure.gradient(q)  # first: it raises where a guard is set and q̃ left the fitted range
-        return self.base.acceleration(q, v, t) - solve_mass(self.base.mass_matrix(q), extra)
+        return self.base.acceleration(q, v, t, extra_force=-extra)  # with the base's own M̃ (no second jet)
 
     def hamiltonian_derivatives(self, q: Tensor, p: Tensor, t: float = 0.0) -> tuple[Tensor, Tensor]:
         extra = self.closure.gradient(q)

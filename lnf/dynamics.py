@@ -121,12 +121,13 @@ class ReducedDynamics:
         jet = self._jet(q, order=1)
         return self._mass(jet), self.potential_fn(jet.value, jet.G), self._gravity(jet)
 
-    def acceleration(self, q: Tensor, v: Tensor, t: float = 0.0) -> Tensor:
-        """q̃̈ = M̃⁻¹ (−c̃ − g̃ + τ̃) (B, d)."""
+    def acceleration(self, q: Tensor, v: Tensor, t: float = 0.0, extra_force: Optional[Tensor] = None) -> Tensor:
+        """q̃̈ = M̃⁻¹ (−c̃ − g̃ + τ̃ [+ `extra_force` (B, d), e.g. a closure's −∇ΔṼ]) (B, d)."""
         terms = self.terms(q, v, t)
         rhs = -terms.coriolis - terms.gravity
-        if terms.force is not None:
-            rhs = rhs + terms.force
+        for force in (terms.force, extra_force):
+            if force is not None:
+                rhs = rhs + force
         return solve_mass(terms.mass, rhs)
 
     def hamiltonian_derivatives(self, q: Tensor, p: Tensor, t: float = 0.0) -> tuple[Tensor, Tensor]:

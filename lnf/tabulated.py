@@ -283,18 +283,20 @@ class TabulatedDynamics:
     def velocity(self, q: Tensor, p: Tensor) -> Tensor:
         return self._solve(self.mass_matrix(q), p)
 
-    def acceleration(self, q: Tensor, v: Tensor, t: float = 0.0) -> Tensor:
-        """q̃̈ = M̃⁻¹(−c̃ − g̃), c̃_i = Σ_jk (∂_k M̃_ij − ½ ∂_i M̃_jk) q̃̇_j q̃̇_k (B, d)."""
+    def acceleration(self, q: Tensor, v: Tensor, t: float = 0.0, extra_force: Optional[Tensor] = None) -> Tensor:
+        """q̃̈ = M̃⁻¹(−c̃ − g̃ [+ `extra_force` (B, d)]), c̃_i = Σ_jk (∂_k M̃_ij − ½ ∂_i M̃_jk) q̃̇_j q̃̇_k (B, d)."""
         if self.d == 1:  # q̃̈ = −(½ M̃' q̃̇² + Ṽ') / M̃
             cols = self._scalar(q)
             if cols is not None:
-                return -torch.addcmul(cols[:, 3:], cols[:, 2:3], v * v) / cols[:, :1]
+                rhs = torch.addcmul(cols[:, 3:], cols[:, 2:3], v * v)
+                return (-rhs if extra_force is None else extra_force - rhs) / cols[:, :1]
             out = self._raw(q)
-            return self._solve(out[:, :1, :1], -0.5 * out[:, 1, :1] * v * v - out[:, 1, 1:])
-        mass, dmass, _, grad = self._parts(q)
-        dm_v = torch.einsum("bkij,bj->bik", dmass, v)  # Σ_j ∂_k M̃_ij v_j
-        coriolis = torch.einsum("bik,bk->bi", dm_v, v) - 0.5 * torch.einsum("bijk,bj,bk->bi", dmass, v, v)
-        return self._solve(mass, -coriolis - grad)
+            mass, rhs = out[:, :1, :1], -0.5 * out[:, 1, :1] * v * v - out[:, 1, 1:]
+        else:
+            mass, dmass, _, grad = self._parts(q)
+            dm_v = torch.einsum("bkij,bj->bik", dmass, v)  # Σ_j ∂_k M̃_ij v_j
+            rhs = -torch.einsum("bik,bk->bi", dm_v, v) + 0.5 * torch.einsum("bijk,bj,bk->bi", dmass, v, v) - grad
+        return self._solve(mass, rhs if extra_force is None else rhs + extra_force)
 
     def hamiltonian_derivatives(self, q: Tensor, p: Tensor, t: float = 0.0) -> tuple[Tensor, Tensor]:
         """(q̃̇ = M̃⁻¹p̃, −∂H/∂q̃ = ½ q̃̇ᵀ ∂_k M̃ q̃̇ − ∂_k Ṽ) (B, d) each."""

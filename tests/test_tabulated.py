@@ -39,6 +39,9 @@ def test_tabulated_matches_the_exact_nonlinear_pullback_in_2d():
     q = torch.tensor([[0.3, -0.7], [1.1, 0.2], [-0.5, 0.9]], dtype=torch.float64)
     v = torch.tensor([[0.5, 1.5], [-2.0, 0.7], [0.1, -0.3]], dtype=torch.float64)
     torch.testing.assert_close(tab.acceleration(q, v), exact.acceleration(q, v), atol=1e-8, rtol=1e-8)
+    extra = torch.tensor([[0.4, -1.0], [2.0, 0.3], [-0.7, 0.0]], dtype=torch.float64)  # e.g. a closure's −∇ΔṼ
+    torch.testing.assert_close(tab.acceleration(q, v, extra_force=extra), exact.acceleration(q, v, extra_force=extra),
+                               atol=1e-8, rtol=1e-8)
     for a, b in zip(tab.hamiltonian_derivatives(q, v), exact.hamiltonian_derivatives(q, v)):
         torch.testing.assert_close(a, b, atol=1e-8, rtol=1e-8)
     for a, b in zip(tab.energies(q, v), exact.energies(q, v)):
@@ -54,6 +57,9 @@ def test_rows_off_the_box_use_the_exact_pullback():
     torch.testing.assert_close(tab.acceleration(q, v), exact.acceleration(q, v), atol=1e-8, rtol=1e-8)
     torch.testing.assert_close(tab.mass_matrix(q), exact.mass_matrix(q), atol=1e-9, rtol=1e-9)
     assert tab.fallback_rows == 4  # two rows, in two calls
+    extra = torch.ones_like(q)
+    torch.testing.assert_close(tab.acceleration(q, v, extra_force=extra), exact.acceleration(q, v, extra_force=extra),
+                               atol=1e-8, rtol=1e-8)
 
 
 def test_tabulated_pendulum_rollout_follows_the_exact_one_and_conserves_its_energy(pendulum):
@@ -62,6 +68,10 @@ def test_tabulated_pendulum_rollout_follows_the_exact_one_and_conserves_its_ener
     q0 = torch.tensor([[1.2], [-0.4], [0.1]], dtype=torch.float64)
     v0 = torch.tensor([[0.5], [-1.0], [0.9]], dtype=torch.float64)
     midpoint = {"name": "implicit_midpoint", "order": 4}
+    for q, extra in ((q0, 0.3 * q0), (q0 + 3.0, -q0)):  # the d = 1 path on the box and the fallback off it
+        torch.testing.assert_close(tab.acceleration(q, v0, extra_force=extra),
+                                   exact.acceleration(q, v0, extra_force=extra), atol=1e-7, rtol=1e-7)
+        assert not torch.allclose(tab.acceleration(q, v0, extra_force=extra), tab.acceleration(q, v0))
     a = get_integrator(midpoint).integrate(tab, q0, v0, 0.05, 400)
     b = get_integrator(midpoint).integrate(exact, q0, v0, 0.05, 400)
     assert (a.q - b.q).abs().max() < 1e-6
