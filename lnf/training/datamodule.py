@@ -13,6 +13,7 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader, Dataset
 
+from lnf.closure import central_difference4
 from lnf.dataset import (SOURCE_ARRAYS, DatasetConfig, DatasetError, TrajectorySplit, content_checksum, dataset_source,
                          default_path, ensure_dataset, load_split, observed_index, stored_generation)
 from lnf.model import build
@@ -152,7 +153,7 @@ class SnapshotDataset(Dataset):
         near = {j: self._read(self.KEYS[1], i, k + j) for j in (-2, -1, 1, 2)}
         if self.noise_std is not None:  # each neighbour's own noise; its values are not read
             near = {j: u + self._noise(i, k + j, u.shape)[1] for j, u in near.items()}
-        acc = (-near[2] + 8.0 * near[1] - 8.0 * near[-1] + near[-2]) / (12.0 * self.dt)
+        acc = central_difference4(near[-2], near[-1], near[1], near[2], self.dt)
         return torch.from_numpy(np.ascontiguousarray(acc, dtype=np.float32)), torch.tensor(True)
 
     def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
