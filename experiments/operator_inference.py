@@ -49,13 +49,15 @@ def load_data(study: S.Study) -> tuple[Any, Any, dict[str, Any]]:
 
 
 def split_controls(scene: Any, split: Any) -> Optional[np.ndarray]:
-    """Per-trajectory loads (n, c): stored ones, else the scene's from the initial states (as lnf's evaluation)."""
-    if split.controls is not None:
-        return np.asarray(split.controls, dtype=np.float64)
-    if split.states.shape[-1] > 0:
+    """The loads of a split's trajectories as Operator Inference takes them: the scene's input series u(t)
+    (n, T, m) (``Scene.input_signals``) of the per-trajectory load parameters, stored ones or else the scene's from
+    the initial states (as lnf's evaluation); None for a scene without loads."""
+    controls = split.controls
+    if controls is None and split.states.shape[-1] > 0:
         controls = scene.controls(np.asarray(split.states[:, 0]))
-        return None if controls is None else np.asarray(controls, dtype=np.float64)
-    return None
+    if controls is None:
+        return None
+    return scene.input_signals(np.asarray(controls, dtype=np.float64), np.asarray(split.times, dtype=np.float64))
 
 
 def mass_weights(scene: Any, split: Any) -> np.ndarray:

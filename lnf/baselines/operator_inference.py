@@ -158,7 +158,11 @@ class OperatorInference:
                 equal.
             metric_weights: (N,) weights of the validation field error (lnf's metric: the points' quadrature
                 weights); default equal.
-            controls, val_controls: per-trajectory loads (n, c), (m, c), or None (both or neither).
+            controls, val_controls: the loads of the training and validation trajectories, or None (both or
+                neither): constant per trajectory (n, c), (m, c), or input series (n, ≥T, c), (m, ≥T', c) sampled
+                with the fields (e.g. ``Scene.input_signals``), of which each step s_k → s_{k+1} is given the
+                inputs at both ends (u_k, u_{k+1}): a first-order hold, exact for a linear response to piecewise-linear
+                loads.
         """
         opinf = import_opinf()
         start = time.perf_counter()
@@ -217,11 +221,10 @@ class OperatorInference:
         inputs = None
         self.n_inputs = 0
         if controls is not None:
-            # loads enter as B u with u constant along each trajectory (an affine load, e.g. a gravity or tip force
-            # scaled per trajectory); a load that changes the stiffness would need a bilinear term, which is not fitted
-            controls = np.asarray(controls, dtype=np.float64).reshape(n, -1)
-            self.n_inputs = controls.shape[1]
-            inputs = np.repeat(controls.T[:, :, None], train_times - 1, axis=2).reshape(self.n_inputs, -1)
+            # loads enter affinely as B u (a load that changes the stiffness would need a bilinear term, not fitted)
+            steps = self._step_inputs(controls, n, train_times, "controls")  # (n, train_times − 1, m)
+            self.n_inputs = steps.shape[2]
+            inputs = steps.transpose(2, 0, 1).reshape(self.n_inputs, -1)
         val_states0 = self.encode(val_fields[:, :1], val_velocities[:, :1])[:, 0]
         self.candidates = []
         best = None
@@ -243,6 +246,19 @@ class OperatorInference:
         self.fit_seconds = time.perf_counter() - start
         return self
 
+    @staticmethod
+    def _step_inputs(controls: np.ndarray, n: int, n_times: int, name: str) -> np.ndarray:
+        """The inputs (n, n_times − 1, m) of the steps k → k+1: constant loads (n, c) as they are (m = c), input
+        series (n, ≥ n_times, c) as (u_k, u_{k+1}) (m = 2c)."""
+        u = np.asarray(controls, dtype=np.float64)
+        if u.ndim == 2 and u.shape[0] == n:
+            return np.repeat(u[:, None, :], max(n_times - 1, 1), axis=1)
+        if u.ndim == 3 and u.shape[0] == n and u.shape[1] >= n_times:
+            u = u[:, :n_times]
+            return np.concatenate([u[:, :-1], u[:, 1:]], axis=2) if n_times > 1 else np.concatenate([u, u], axis=2)
+        raise ValueError(f"{name} must be loads per trajectory ({n}, c) or input series ({n}, ≥{n_times}, c), got "
+                         f"shape {u.shape}")
+
     # -- prediction -----------------------------------------------------------------------------
     def _predict_from(self, states0: np.ndarray, n_times: int, controls: Optional[np.ndarray]) -> Prediction:
         m = states0.shape[0]
@@ -251,10 +267,12 @@ class OperatorInference:
         seconds, decode_seconds = np.zeros(m), np.zeros(m)
         fields = np.empty((m, n_times, *self.shape))
         velocities = np.empty_like(fields)
+        steps = self._step_inputs(controls, m, n_times, "controls") if self.n_inputs else None
+        if steps is not None and steps.shape[2] != self.n_inputs:
+            raise ValueError(f"controls give {steps.shape[2]} inputs per step, the model was fitted with "
+                             f"{self.n_inputs} (loads per trajectory and input series are not interchangeable)")
         for i in range(m):
-            u = None
-            if self.n_inputs:
-                u = np.repeat(np.asarray(controls[i], dtype=np.float64).reshape(-1, 1), max(n_times - 1, 1), axis=1)
+            u = None if steps is None else steps[i].T  # (m, n_times − 1)
             t0 = time.perf_counter()
             with np.errstate(all="ignore"):
                 traj = self.model.predict(states0[i], n_times, inputs=u).T  # (n_times, r)
@@ -275,12 +293,13 @@ class OperatorInference:
     def predict(self, fields0: np.ndarray, velocities0: np.ndarray, n_times: int,
                 controls: Optional[np.ndarray] = None) -> Prediction:
         """Roll out the selected model from initial fields and velocities (n, N, A) for `n_times` samples (the
-        first is the projected initial snapshot); `controls` (n, c) when the model was fitted with loads."""
+        first is the projected initial snapshot); `controls` when the model was fitted with loads, in the form it
+        was fitted with ((n, c), or input series (n, ≥ n_times, c))."""
         if self.model is None:
             raise RuntimeError("OperatorInference.predict before fit")
         if (controls is None) != (self.n_inputs == 0):
             raise ValueError("this model was fitted " + ("with" if self.n_inputs else "without") +
-                             " per-trajectory loads: give `controls` " + ("(n, c)" if self.n_inputs else "None"))
+                             " loads: give `controls` " + ("(n, c) or (n, T, c)" if self.n_inputs else "None"))
         if int(n_times) < 1:
             raise ValueError(f"n_times must be ≥ 1, got {n_times!r}")
         s0 = self.encode(np.asarray(fields0)[:, None], np.asarray(velocities0)[:, None])[:, 0]

@@ -271,6 +271,13 @@ class Scene:
         """Per-trajectory load parameters (n, c) read from full-order initial states (n, S), or None."""
         return None
 
+    def input_signals(self, controls: np.ndarray, times: np.ndarray) -> np.ndarray:
+        """The known load inputs u(t) (n, T, m) of trajectories with load parameters `controls` (n, c) at `times`
+        (T,) [s]: what an input-affine reduced model (Operator Inference's B u) is given. Default: the parameters
+        held constant (an affine load scaled per trajectory); a scene whose loads vary in time says how."""
+        controls = np.asarray(controls, dtype=np.float64)
+        return np.repeat(controls[:, None, :], len(np.asarray(times)), axis=1)
+
     def clamp_factor(self, points: Tensor) -> tuple[Tensor, Tensor]:
         """(s, ∇s) at points (…, N, dim_B) → (…, N), (…, N, dim_B): a factor vanishing where the field is
         clamped, for a field that meets the clamp exactly (:class:`lnf.boundary.ClampedField`)."""

@@ -246,6 +246,11 @@ class ElasticCantilever(Scene):
     def controls(self, states: np.ndarray) -> Optional[np.ndarray]:
         return np.asarray(states)[..., -2:] if self.forced else None
 
+    def input_signals(self, controls: np.ndarray, times: np.ndarray) -> np.ndarray:
+        """The actuation's amplitude A sin(2π f t) (n, T, 1) for controls (A, f) (n, 2): the load b = that × s(X) e₂."""
+        controls, times = np.asarray(controls, dtype=np.float64), np.asarray(times, dtype=np.float64)
+        return (controls[:, None, 0] * np.sin(2 * np.pi * controls[:, None, 1] * times[None, :]))[..., None]
+
     # -- the full-order model ---------------------------------------------------------------------------
     @property
     def n_nodes(self) -> int:
