@@ -55,17 +55,19 @@ def fit_closure(model: Any, datamodule: Any, spec: Any) -> dict[str, float]:
         return err if math.isfinite(err) else math.inf
 
     closure.reset()
-    closure.guard_margin = CLOSURE_GUARD_MARGIN
     best = (val_error(), 0.0, 0.0)  # (error, λ, misfit); λ = 0: none
     pullback_error = best[0]
-    for lam in CLOSURE_REGULARIZERS:
-        misfit = closure.fit(codes, residual, lam)
-        err = val_error()
-        log.info("closure λ = %.0e: misfit %.3f of the residual, validation field error %.4g in the horizon",
-                 lam, misfit, err)
-        if err < best[0]:
-            best = (err, lam, misfit)
-    closure.guard_margin = None
+    closure.guard_margin = CLOSURE_GUARD_MARGIN
+    try:
+        for lam in CLOSURE_REGULARIZERS:
+            misfit = closure.fit(codes, residual, lam)
+            err = val_error()
+            log.info("closure λ = %.0e: misfit %.3f of the residual, validation field error %.4g in the horizon",
+                     lam, misfit, err)
+            if err < best[0]:
+                best = (err, lam, misfit)
+    finally:  # the fitted model rolls out anywhere
+        closure.guard_margin = None
     if best[1] > 0:
         closure.fit(codes, residual, best[1])
     else:
