@@ -34,7 +34,8 @@ def spread(rows: list[dict]) -> list[dict]:
         out.append({"window": window, "median": median, "worst": float(errors[worst]),
                     "worst_over_median": float(errors[worst] / median) if median > 0 else np.inf,
                     "worst_seed": int(rows[worst]["seed"]), "seeds": len(rows),
-                    "diverged_seeds": ", ".join(map(str, diverged)) or "none"})
+                    "diverged_seeds": (("seed " if len(diverged) == 1 else "seeds ") + ", ".join(map(str, diverged)))
+                    if diverged else "none"})
     return out
 
 

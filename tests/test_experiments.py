@@ -710,7 +710,10 @@ def test_seed_spread_counts_a_diverged_seed_as_the_worst():
             {"seed": 2, "field_rel_l2/all/median": float("inf"), "diverged_count": 3}]
     (all_,) = [r for r in spread(rows) if r["window"] == "all"]
     assert all_["median"] == 0.10 and all_["worst_seed"] == 2 and all_["worst_over_median"] == float("inf")
-    assert all_["diverged_seeds"] == "2"
+    assert all_["diverged_seeds"] == "seed 2"  # not a bare "2", which reads as a count
+    rows[0]["diverged_count"] = 1
+    assert spread(rows)[0]["diverged_seeds"] == "seeds 0, 2"
+    assert spread([{**r, "diverged_count": 0} for r in rows])[0]["diverged_seeds"] == "none"
 
 
 def test_a_sweep_run_again_with_another_command_keeps_the_old_results(tmp_path, monkeypatch):
