@@ -49,15 +49,19 @@ def load_data(study: S.Study) -> tuple[Any, Any, dict[str, Any]]:
 
 
 def split_controls(scene: Any, split: Any) -> Optional[np.ndarray]:
-    """The loads of a split's trajectories as Operator Inference takes them: the scene's input series u(t)
-    (n, T, m) (``Scene.input_signals``) of the per-trajectory load parameters, stored ones or else the scene's from
-    the initial states (as lnf's evaluation); None for a scene without loads."""
+    """The loads of a split's trajectories as Operator Inference takes them, from the per-trajectory load parameters
+    (stored ones, else the scene's from the initial states, as lnf's evaluation): the scene's input series u(t)
+    (n, T, m) where it says how its loads vary in time (``Scene.input_signals``), else the parameters (n, c) as a
+    constant input (a held series would give each step the same input twice); None for a scene without loads."""
     controls = split.controls
     if controls is None and split.states.shape[-1] > 0:
         controls = scene.controls(np.asarray(split.states[:, 0]))
     if controls is None:
         return None
-    return scene.input_signals(np.asarray(controls, dtype=np.float64), np.asarray(split.times, dtype=np.float64))
+    controls = np.asarray(controls, dtype=np.float64)
+    if not scene.provides("input_signals"):
+        return controls
+    return scene.input_signals(controls, np.asarray(split.times, dtype=np.float64))
 
 
 def mass_weights(scene: Any, split: Any) -> np.ndarray:

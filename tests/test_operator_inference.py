@@ -121,6 +121,25 @@ def test_time_varying_loads_enter_as_input_series_held_over_each_step():
         model.predict(test[0][:, 0], test[1][:, 0], 60, controls=series["test"][:, :10])
 
 
+def test_the_study_gives_a_scene_s_input_series_only_where_the_scene_defines_them():
+    """A scene whose loads vary in time gives Operator Inference its series; one with constant loads (no
+    input_signals of its own) its parameters (n, c), not a held series whose steps would repeat each input."""
+    from types import SimpleNamespace
+
+    from experiments.operator_inference import split_controls
+    from lnf.scenes import ElasticCantilever, Scene
+
+    class ConstantLoads(Scene):
+        def controls(self, states):
+            return states[:, -1:]
+
+    split = SimpleNamespace(controls=None, states=np.array([[[0.0, 2.0]], [[0.0, -1.0]]]), times=np.arange(5) * 0.1)
+    np.testing.assert_array_equal(split_controls(ConstantLoads.__new__(ConstantLoads), split), [[2.0], [-1.0]])
+    stored = SimpleNamespace(controls=np.array([[0.5, 0.4]]), states=np.zeros((1, 5, 0)), times=split.times)
+    series = split_controls(ElasticCantilever.__new__(ElasticCantilever), stored)
+    np.testing.assert_allclose(series[0, :, 0], 0.5 * np.sin(2 * np.pi * 0.4 * split.times))
+
+
 def test_blown_up_rollouts_are_marked_diverged_not_raised():
     train, val = oscillators(6), oscillators(3, seed=1)
     model = OperatorInference(4, operators=["cA"], regularizers=[1e-8]).fit(*train, 20, *val)
