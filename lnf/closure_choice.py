@@ -14,6 +14,7 @@ import torch
 from lnf.baselines.latent_mlp import latent_trajectories
 from lnf.closure import ClosureLeftItsRange, equation_residual
 from lnf.evaluation_pipeline import EvaluationData, evaluate_model
+from lnf.tabulated import TABLE_MARGIN
 
 log = logging.getLogger("lnf.closure")
 
@@ -21,9 +22,6 @@ log = logging.getLogger("lnf.closure")
 #: the closure's candidate regularizers (ridge λ, relative to the normal matrix's mean diagonal)
 CLOSURE_REGULARIZERS = (1e-8, 1e-5, 1e-2)
 CLOSURE_VAL_TRAJECTORIES = 8
-#: while choosing, a candidate whose validation rollout leaves the training codes' range by more than this fraction of
-#: its span is rejected (the polynomial extrapolates; a tabulated pullback's box has the same default margin)
-CLOSURE_GUARD_MARGIN = 0.25
 
 
 def fit_closure(model: Any, datamodule: Any, spec: Any) -> dict[str, float]:
@@ -57,7 +55,9 @@ def fit_closure(model: Any, datamodule: Any, spec: Any) -> dict[str, float]:
     closure.reset()
     best = (val_error(), 0.0, 0.0)  # (error, λ, misfit); λ = 0: none
     pullback_error = best[0]
-    closure.guard_margin = CLOSURE_GUARD_MARGIN
+    # a candidate whose validation rollout leaves the training codes' range by more than the table's margin is rejected:
+    # its polynomial extrapolates there, and a tabulated pullback would fall back to the exact jets
+    closure.guard_margin = float((getattr(model, "tabulation", None) or {}).get("margin", TABLE_MARGIN))
     try:
         for lam in CLOSURE_REGULARIZERS:
             misfit = closure.fit(codes, residual, lam)
@@ -65,13 +65,12 @@ def fit_closure(model: Any, datamodule: Any, spec: Any) -> dict[str, float]:
             log.info("closure λ = %.0e: misfit %.3f of the residual, validation field error %.4g in the horizon",
                      lam, misfit, err)
             if err < best[0]:
-                best = (err, lam, misfit)
+                best, chosen = (err, lam, misfit), closure.coef.clone()
     finally:  # the fitted model rolls out anywhere
         closure.guard_margin = None
-    if best[1] > 0:
-        closure.fit(codes, residual, best[1])
-    else:
-        closure.reset()
+    closure.reset()
+    if best[1] > 0:  # every fit has the same centre and scale (the codes'): the chosen one's coefficients suffice
+        closure.coef.copy_(chosen)
     seconds = time.perf_counter() - start
     log.info("potential closure: %s (validation field error %.4g in the horizon, the pure pullback's %.4g), %.1f s",
              f"λ = {best[1]:.0e}, {len(closure.coef)} terms" if best[1] > 0 else "none (the pure pullback is best)",

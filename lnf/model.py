@@ -340,10 +340,10 @@ class LagrangianNeuralField(ReducedModel):
         return self._table_cache[1]
 
     def _build_table(self, quadrature: "Quadrature | QuadratureRule | None") -> Any:
-        from lnf.tabulated import TabulatedDynamics
+        from lnf.tabulated import TABLE_MARGIN, TabulatedDynamics
 
         opts = dict(self.tabulation or {})
-        margin = float(opts.pop("margin", 0.25))
+        margin = float(opts.pop("margin", TABLE_MARGIN))
         low, high = self.code_low.double(), self.code_high.double()
         if not (torch.isfinite(low).all() and torch.isfinite(high).all()):
             raise ValueError("dynamics=tabulated needs the range of the training codes, which this model does not "

@@ -30,6 +30,9 @@ from lnf.dynamics import ReducedDynamics
 from lnf.dynamics_kind import TABULATED
 from lnf.reduction import solve_mass
 
+#: the table's box: the training codes' range widened by this fraction of its span on each side (``dynamics.margin``)
+TABLE_MARGIN = 0.25
+
 
 def _symmetric_pairs(d: int) -> list[tuple[int, int]]:
     return [(i, j) for i in range(d) for j in range(i, d)]
