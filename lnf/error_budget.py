@@ -42,10 +42,12 @@ def stiffness_finding(metrics: Mapping[str, float], clamped: bool = False) -> li
     return [text]
 
 
-def read_error_budget(metrics: Mapping[str, float], window: str = "all", clamped: bool = False) -> list[str]:
+def read_error_budget(metrics: Mapping[str, float], window: str = "all", clamped: bool = False,
+                      closed: bool = False) -> list[str]:
     """Findings (sentences) on `metrics` (a metrics.json dict) in one time window ("all", "in_horizon",
     "extrapolation"); empty when the floor or the error is missing or not finite, or nothing stands out. `clamped`:
-    the model's field is clamped (``model.clamp=true``), named as a likely cause of stiff dynamics."""
+    the model's field is clamped (``model.clamp=true``), named as a likely cause of stiff dynamics; `closed`: its
+    dynamics already carry a fitted potential closure (else one is suggested where the dynamics lose the accuracy)."""
     out = stiffness_finding(metrics, clamped)
     floor = metrics.get(f"projection_rel_l2/{window}/median")
     error = metrics.get(f"field_rel_l2/{window}/median")
@@ -65,7 +67,10 @@ def read_error_budget(metrics: Mapping[str, float], window: str = "all", clamped
         out.append(f"the dynamics lose the accuracy: field_rel_l2/{window}/median = {error:.3g} is "
                    f"{error / floor:.3g}× the projection floor {floor:.3g}. The embedding holds the states, but the "
                    "equations pulled back through it do not follow them (its tangent and curvature, which define M̃ "
-                   "and Ṽ, are not trained to be right): try the integrator's order 4, a larger latent dimension, or "
-                   "compare with a baseline (experiments/operator_inference.py)")
+                   "and Ṽ, are not trained to be right): try "
+                   + ("" if closed else "a potential closure fitted to the observed motion (model.closure_degree=4, "
+                      "with integrator.order=4; lnf.evaluate closure_degree=4 on this checkpoint), ")
+                   + "the integrator's order 4, a larger latent dimension, or compare with a baseline "
+                   "(experiments/operator_inference.py)")
     return out
 

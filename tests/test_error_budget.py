@@ -37,3 +37,10 @@ def test_stiff_dynamics_are_named_and_the_clamp_blamed_only_on_a_clamped_field()
     assert "stiff" in plain and "40 integration steps per sample" in plain and "clamp" not in plain
     assert "model.clamp=false" in clamped
     assert read_error_budget({**metrics, "substeps": 2.0}, clamped=True) == []  # a few substeps: nothing to say
+
+
+def test_a_closure_is_suggested_only_to_a_model_without_one():
+    (bare,) = read_error_budget(_m(0.022, 0.181))
+    (closed,) = read_error_budget(_m(0.022, 0.181), closed=True)
+    assert "model.closure_degree=4" in bare
+    assert "closure" not in closed and "the integrator's order 4" in closed
