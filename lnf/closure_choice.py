@@ -54,6 +54,7 @@ def fit_closure(model: Any, datamodule: Any, spec: Any) -> dict[str, float]:
 
     closure.reset()
     best = (val_error(), 0.0, 0.0)  # (error, λ, misfit); λ = 0: none
+    chosen = None  # the coefficients of the best candidate, once one beats the pure pullback
     pullback_error = best[0]
     # a candidate whose validation rollout leaves the training codes' range by more than the table's margin is rejected:
     # its polynomial extrapolates there, and a tabulated pullback would fall back to the exact jets
@@ -69,7 +70,7 @@ def fit_closure(model: Any, datamodule: Any, spec: Any) -> dict[str, float]:
     finally:  # the fitted model rolls out anywhere
         closure.guard_margin = None
     closure.reset()
-    if best[1] > 0:  # every fit has the same centre and scale (the codes'): the chosen one's coefficients suffice
+    if chosen is not None:  # every fit has the same centre and scale (the codes'): the chosen one's coefficients suffice
         closure.coef.copy_(chosen)
     seconds = time.perf_counter() - start
     log.info("potential closure: %s (validation field error %.4g in the horizon, the pure pullback's %.4g), %.1f s",

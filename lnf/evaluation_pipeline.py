@@ -135,9 +135,7 @@ def evaluate_model(model: ReducedModel, data: EvaluationData, spec: EvaluationSp
                                keep_fields=spec.keep_fields, progress=spec.progress, decoding=spec.decoding)
     metrics = {**result.metrics, **long_horizon_check(model, data, spec)}
     metrics["evaluation_seconds"] = time.perf_counter() - start
-    closure = getattr(model, "closure", None)
-    return EvaluationReport(metrics, result, data, spec, model.scene, is_clamped(model),
-                            closed=closure is not None and closure.active)
+    return EvaluationReport(metrics, result, data, spec, model.scene, is_clamped(model), closed=model.has_closure)
 
 
 def long_horizon_check(model: ReducedModel, data: EvaluationData, spec: EvaluationSpec) -> dict[str, float]:

@@ -172,9 +172,14 @@ class ReducedModel(nn.Module):
         the model's closure once fitted."""
         return self.closed(self.lagrangian_dynamics(quadrature))
 
+    @property
+    def has_closure(self) -> bool:
+        """Whether the model carries a fitted (non-zero) potential closure ΔṼ (lnf/closure.py)."""
+        return self.closure is not None and self.closure.active
+
     def closed(self, dynamics: Any) -> Any:
         """`dynamics` with the model's fitted closure added (lnf/closure.py), or as it is."""
-        return ClosedDynamics(dynamics, self.closure) if self.closure is not None and self.closure.active else dynamics
+        return ClosedDynamics(dynamics, self.closure) if self.has_closure else dynamics
 
     def rollout(self, q0: Tensor, v0: Tensor, dt: float, steps: int,
                 integrator: "str | Integrator | dict" = "implicit_midpoint", record_every: int = 1,
@@ -213,7 +218,7 @@ class ReducedModel(nn.Module):
         q, v = self.as_model(q), self.as_model(v)
         with torch.no_grad():
             kinetic, potential = self.lagrangian_dynamics(quadrature).energies(q, v)
-            if self.closure is not None and self.closure.active:  # the closed system's energy (lnf/closure.py)
+            if self.has_closure:  # the closed system's energy (lnf/closure.py)
                 potential = potential + self.closure.potential(q.reshape(-1, q.shape[-1])).reshape(potential.shape)
             return kinetic, potential
 
