@@ -210,6 +210,25 @@ def test_check_scene_demands_field_gradients_only_where_the_run_needs_them():
         check_scene(StandingWave(), needs=["gradients"])
 
 
+class _BumpWithScaledGradients(BumpPendulum):
+    """∇_X q off by 1 %: what a subclass that inherits or mistypes field_gradients() would give."""
+
+    def field_gradients(self, states, points):
+        return 1.01 * super().field_gradients(states, points)
+
+
+@pytest.mark.parametrize("scene", [LiftedPendulum(), BumpPendulum()], ids=["pendulum", "bump"])
+def test_the_pendulum_scenes_give_the_gradients_of_their_own_fields(scene):
+    report = check_scene(scene, needs=["field_gradients"])
+    assert any("against central differences" in p for p in report.passed), str(report)
+
+
+def test_check_scene_rejects_field_gradients_that_are_not_the_gradients_of_fields():
+    with pytest.raises(SceneCheckError, match=r"field_gradients differs from central differences of fields by "
+                                              r"0\.01\d* of the largest gradient"):
+        check_scene(_BumpWithScaledGradients(), needs=["field_gradients"])
+
+
 def test_check_scene_names_the_methods_of_each_capability_the_run_needs():
     class Trajectories(StandingWave):  # no simulator
         simulate = Scene.simulate

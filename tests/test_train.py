@@ -361,7 +361,7 @@ def test_the_gradient_loss_asks_the_scene_for_field_gradients_before_any_data(tm
     cfg = compose_config("train", ["+experiment=pendulum", "trainer=smoke", "logger=none", *TINY,
                                    "model.gradient_weight=0.1"], tmp_path)
     with open_dict(cfg):
-        cfg.scene = {"_target_": "lnf.scenes.LiftedPendulum"}
+        cfg.scene = {"_target_": "lnf.scenes.LiftedDoublePendulum"}
     with pytest.raises(SceneCheckError, match=r"field_gradients: model\.gradient_weight=0\.1 \(the gradient loss\) "
                                               r"needs field_gradients\(\)"):
         train(cfg)

@@ -89,3 +89,9 @@ class BumpPendulum(LiftedPendulum):
         dc = self.radius * np.stack([np.cos(theta), np.sin(theta)], -1)  # dc/dθ
         qdot = q * 2.0 * np.einsum("...nk,...k->...n", offset, dc) / self.width**2 * omega[..., None]
         return q[..., None], qdot[..., None]
+
+    def field_gradients(self, states: np.ndarray, points: np.ndarray) -> np.ndarray:
+        """∇_X q = −2 (X − c(θ)) q / σ² (…, N, 1, 2) at points (N, 2)."""
+        offset = np.asarray(points) - self.centre(np.asarray(states)[..., 0])[..., None, :]  # (…, N, 2)
+        q = np.exp(-np.sum(offset**2, -1) / self.width**2)
+        return (-2.0 / self.width**2 * offset * q[..., None])[..., None, :]

@@ -161,6 +161,27 @@ def _simulated(scene: Scene, n: int, times: np.ndarray) -> tuple[np.ndarray, str
     return states, None
 
 
+def _gradients_match_fields(scene: Scene, states: np.ndarray, points: np.ndarray, G: np.ndarray,
+                            tolerance: float = 1e-3) -> str | None:
+    """None when `G` = field_gradients(states, points) matches central differences of ``fields`` (step 1e-6 of the
+    body's box, interior points), else the problem: a wrong ∇_X q would train the gradient loss on the wrong target."""
+    h = 1e-6 * max(float(hi) - float(lo) for lo, hi in scene.bounds)
+    every = max(1, len(points) // 256)  # one state and ≤ 256 points keep the check cheap on a fine mesh
+    states, points, G = states[:1, -1:], points[::every], G[:1, -1:, ::every]
+    columns = []
+    for j in range(points.shape[1]):
+        step = np.zeros(points.shape[1])
+        step[j] = h
+        ahead, behind = scene.fields(states, points + step)[0], scene.fields(states, points - step)[0]
+        columns.append((np.asarray(ahead) - np.asarray(behind)) / (2 * h))
+    differences = np.stack(columns, -1)
+    gap = float(np.max(np.abs(G - differences))) / max(float(np.max(np.abs(differences))), 1e-12)
+    if gap > tolerance:
+        return (f"field_gradients differs from central differences of fields by {gap:.3g} of the largest gradient "
+                f"(tolerance {tolerance}): it must be ∇_X of the q that fields() returns")
+    return None
+
+
 def check_scene(scene: Scene, raise_on_problem: bool = True, n_trajectories: int = 2, n_times: int = 21,
                 dt: float = 0.05, quadrature_order: int = 12, potential_tolerance: float = 0.02,
                 energy_tolerance: float = 1e-3, *, needs: "Iterable[str] | Mapping[str, str]" = (),
@@ -237,8 +258,8 @@ def check_scene(scene: Scene, raise_on_problem: bool = True, n_trajectories: int
                         f"(n, T, N, A, dim_B) = {want}, got {G.shape}")
             if not np.isfinite(G).all():
                 return "field_gradients returned non-finite values"
-            return None
-        _run(report, "field gradients ∇_X q (shapes, finite)", gradients)
+            return _gradients_match_fields(scene, states, points, G) if caps["fields"] else None
+        _run(report, "field gradients ∇_X q (shapes, finite, against central differences of fields)", gradients)
     if not caps["true_energies"]:
         report.skipped.append("true_energy_parts(): not defined; no potential or conservation check")
         return _finish(report, raise_on_problem)

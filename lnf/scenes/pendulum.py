@@ -29,6 +29,17 @@ def legendre_mode(points: np.ndarray, degrees: Sequence[int]) -> np.ndarray:
     return u / np.sqrt(norm2)
 
 
+def legendre_mode_gradient(points: np.ndarray, degrees: Sequence[int]) -> np.ndarray:
+    """∇_X u of :func:`legendre_mode`: points (N, dim) → (N, dim)."""
+    points = np.asarray(points, dtype=np.float64)
+    factors = [legendre.Legendre.basis(int(n))(points[..., k]) for k, n in enumerate(degrees)]
+    slopes = [legendre.Legendre.basis(int(n)).deriv()(points[..., k]) for k, n in enumerate(degrees)]
+    norm = np.sqrt(np.prod([2.0 / (2 * int(n) + 1) for n in degrees]))
+    columns = [np.prod([slopes[k] if j == k else factors[j] for j in range(len(degrees))], axis=0)
+               for k in range(len(degrees))]
+    return np.stack(columns, -1) / norm
+
+
 class ProjectedCosinePotential(DiscretePotential):
     """V(q) = m g ℓ (1 − cos⟨q, u⟩) with ⟨q, u⟩ = Σ_j w_j u(X_j) q_j (non-local)."""
 
@@ -131,6 +142,11 @@ class LiftedPendulum(Scene):
         q = states[..., 0, None] * u
         qdot = states[..., 1, None] * u
         return q[..., None], qdot[..., None]
+
+    def field_gradients(self, states: np.ndarray, points: np.ndarray) -> np.ndarray:
+        """∇_X q = θ ∇u (…, N, 1, dim) at points (N, dim)."""
+        grad = legendre_mode_gradient(points, self.degrees)  # (N, dim)
+        return np.asarray(states)[..., 0, None, None, None] * grad[:, None, :]
 
     def true_energy_parts(self, states: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         theta, omega = states[..., 0], states[..., 1]
