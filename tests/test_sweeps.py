@@ -60,7 +60,8 @@ def test_slurm_launcher_config_composes():
                                           "hydra.launcher.tasks_per_node=4", "trainer=ddp", "trainer.devices=4"],
                       return_hydra_config=True)
     launcher = cfg.hydra.launcher
-    assert launcher._target_.endswith("SlurmLauncher") and launcher.partition == "gpu"
+    assert launcher._target_ == "hydra_plugins.hydra_submitit_launcher.submitit_launcher.SlurmLauncher"
+    assert launcher.partition == "gpu"
     assert launcher.tasks_per_node == cfg.trainer.devices == 4 and cfg.trainer.strategy == "ddp"
     assert launcher.max_num_timeout > 0  # a timed-out job is requeued and resumes from its checkpoint
 
