@@ -91,7 +91,8 @@ def _train(cfg: DictConfig) -> dict[str, float]:
     datamodule.gradient_targets = getattr(module.model, "gradient_weight", 0.0) > 0  # items carry ∇_X q for ℓ^G
     fit_info = fit_subspace_first(module, datamodule, resumed=ckpt_file is not None)
     if search_w0:  # model.w0=auto: a short search on the data (lnf/w0_search.py), then training starts afresh
-        module, chosen_settings["w0"] = with_chosen_w0(module, datamodule, scene.bounds, int(cfg.seed))
+        module, chosen_settings["w0"] = with_chosen_w0(module, datamodule, scene.bounds, int(cfg.seed),
+                                                       bool(cfg.trainer.get("enable_progress_bar", True)))
     trainer = build_trainer(cfg, output_dir, evaluation, resumed=ckpt_file is not None)
     if trainer.is_global_zero:  # provenance first, so that a run killed later still says what it was
         write_json_atomic(output_dir / "run.json", run_record(cfg, output_dir / "run.json"))

@@ -24,6 +24,7 @@ import numpy as np
 import torch
 
 from lnf import metrics as M
+from lnf.progress import progress_bar
 
 log = logging.getLogger(__name__)
 
@@ -83,33 +84,46 @@ def _cycled(batches: Callable[[], Iterable]) -> Iterable:
         yield from batches()
 
 
+def _candidate_score(build: Callable[[float], torch.nn.Module], w0: float, train_batches: Callable[[], Iterable],
+                     score: Callable[[torch.nn.Module], float], steps: int, lr: float, seed: int,
+                     advance: Callable[[int], None]) -> float:
+    """`score` of `build(w0)` after `steps` Adam steps; inf for a candidate whose loss blows up."""
+    torch.manual_seed(seed)
+    model = build(w0)
+    opt = torch.optim.Adam(model.parameters(), lr=lr)
+    done = 0
+    try:
+        for batch in itertools.islice(_cycled(train_batches), steps):
+            loss = model.losses(batch.points, batch.values, batch.velocities, batch.potential,
+                                gradients=batch.gradients)["loss"]
+            if not torch.isfinite(loss):
+                raise FloatingPointError(f"loss {loss.item()}")
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            done += 1
+            advance(1)
+        value = score(model)
+    except FloatingPointError as err:  # a candidate that blows up is not chosen
+        log.info("model.w0=auto: w0 = %.4g left out (%s)", w0, err)
+        advance(steps - done)
+        return math.inf
+    return value if math.isfinite(value) else math.inf
+
+
 def search_w0(build: Callable[[float], torch.nn.Module], candidates: Sequence[float],
               train_batches: Callable[[], Iterable], score: Callable[[torch.nn.Module], float],
-              steps: int = STEPS, lr: float = 3e-4, seed: int = 0) -> W0Search:
+              steps: int = STEPS, lr: float = 3e-4, seed: int = 0, progress: bool = False) -> W0Search:
     """Train `build(w0)` for `steps` Adam steps (learning rate `lr`, from seed `seed`) on `train_batches()` (cycled
     :class:`lnf.training.batch.SnapshotBatch` es) for each w0 of `candidates`; the smallest w0 whose `score(model)`
-    is within :data:`TIE` of the lowest wins."""
+    is within :data:`TIE` of the lowest wins. `progress`: a progress bar over all the candidates' steps."""
     if not candidates:
         raise ValueError("search_w0: no candidate w0")
     scores: dict[float, float] = {}
-    for w0 in candidates:
-        torch.manual_seed(seed)
-        model = build(float(w0))
-        opt = torch.optim.Adam(model.parameters(), lr=lr)
-        value = math.inf
-        try:
-            for batch in itertools.islice(_cycled(train_batches), steps):
-                loss = model.losses(batch.points, batch.values, batch.velocities, batch.potential,
-                                    gradients=batch.gradients)["loss"]
-                if not torch.isfinite(loss):
-                    raise FloatingPointError(f"loss {loss.item()}")
-                opt.zero_grad(set_to_none=True)
-                loss.backward()
-                opt.step()
-            value = score(model)
-        except FloatingPointError as err:  # a candidate that blows up is not chosen
-            log.info("model.w0=auto: w0 = %.4g left out (%s)", w0, err)
-        scores[float(w0)] = value if math.isfinite(value) else math.inf
+    with progress_bar(progress, steps * len(candidates), "model.w0=auto", "steps") as advance:
+        for w0 in candidates:
+            scores[float(w0)] = _candidate_score(build, float(w0), train_batches, score, steps, lr, seed, advance)
+            log.info("model.w0=auto: w0 = %.4g scored %.4g", w0, scores[float(w0)])
     finite = {w0: v for w0, v in scores.items() if math.isfinite(v)}
     if not finite:
         raise RuntimeError("model.w0=auto: every candidate w0 (" + ", ".join(f"{w:.4g}" for w in candidates)
@@ -121,7 +135,8 @@ def search_w0(build: Callable[[float], torch.nn.Module], candidates: Sequence[fl
 
 
 def choose_w0(build: Callable[[float], torch.nn.Module], bounds: Sequence[Sequence[float]], datamodule,
-              lr: float, seed: int = 0, spans: Sequence[float] = SPANS, steps: int = STEPS) -> W0Search:
+              lr: float, seed: int = 0, spans: Sequence[float] = SPANS, steps: int = STEPS,
+              progress: bool = False) -> W0Search:
     """:func:`search_w0` over the w0 of `spans` on this body (`bounds`): trained on a data module's training batches
     (``train_dataloader()``), scored by :func:`projection_error` on its validation split (``split("val")``,
     ``train_times``); the outcome is logged as a table."""
@@ -131,7 +146,7 @@ def choose_w0(build: Callable[[float], torch.nn.Module], bounds: Sequence[Sequen
     val = datamodule.split("val")
     outcome = search_w0(build, candidates, datamodule.train_dataloader,
                         lambda model: projection_error(model, val, datamodule.train_times), steps=steps, lr=lr,
-                        seed=seed)
+                        seed=seed, progress=progress)
     log.info("model.w0=auto chose w0 = %.4g (stored in the checkpoint; model.w0=%.4g repeats it):\n%s",
              outcome.chosen, outcome.chosen, outcome.table())
     return outcome

@@ -1,4 +1,5 @@
 """model.w0=auto: the candidates from the body's size, the search, and a run that chooses and stores its w0."""
+import contextlib
 import json
 import math
 from pathlib import Path
@@ -40,6 +41,23 @@ def test_the_search_keeps_the_best_score_and_leaves_out_a_diverging_candidate():
     assert outcome.chosen == 8.0 and outcome.scores[3.0] == math.inf and "<- chosen" in outcome.table()
     with pytest.raises(RuntimeError, match="every candidate w0"):
         search_w0(_Quadratic, [3.0], lambda: [_Batch()], lambda m: 0.0, steps=5)
+
+
+def test_the_search_counts_every_candidates_steps_on_one_progress_bar(monkeypatch):
+    from lnf import w0_search
+
+    seen = []
+
+    @contextlib.contextmanager
+    def recording(enabled, total, description, unit="frames"):
+        seen.append((enabled, total, description, unit))
+        done = []
+        yield done.append
+        seen.append(sum(done))
+
+    monkeypatch.setattr(w0_search, "progress_bar", recording)
+    search_w0(_Quadratic, [3.0, 5.0, 8.0], lambda: [_Batch()], lambda m: abs(m.w0 - 7), steps=5, progress=True)
+    assert seen == [(True, 15, "model.w0=auto", "steps"), 15]  # the diverging w0 = 3 counts its skipped steps
 
 
 def test_near_ties_go_to_the_smaller_w0():

@@ -48,9 +48,11 @@ def fit_subspace_first(module: LNFModule, datamodule: Any, resumed: bool) -> dic
     return module.model.fit_subspace(torch.as_tensor(points), torch.as_tensor(values))
 
 
-def with_chosen_w0(module: LNFModule, datamodule: Any, bounds: Any, seed: int) -> tuple[LNFModule, float]:
-    """``model.w0=auto``: a short search on the data (:mod:`lnf.w0_search`), then a fresh module with the chosen
-    w0 (and the closed-form part already fitted, shared). Returns the module and the w0."""
+def with_chosen_w0(module: LNFModule, datamodule: Any, bounds: Any, seed: int,
+                   progress: bool = False) -> tuple[LNFModule, float]:
+    """``model.w0=auto``: a short search on the data (:mod:`lnf.w0_search`, with a progress bar if `progress`), then
+    a fresh module with the chosen w0 (and the closed-form part already fitted, shared). Returns the module and the
+    w0."""
     hparams, fitted = dict(module.hparams), module.model
 
     def build(w0: float) -> Any:  # each candidate as training will start it (with the POD part fitted already)
@@ -59,7 +61,7 @@ def with_chosen_w0(module: LNFModule, datamodule: Any, bounds: Any, seed: int) -
             candidate.share_fit(fitted)
         return candidate
 
-    chosen = choose_w0(build, bounds, datamodule, lr=module.optimizer_cfg["lr"], seed=seed).chosen
+    chosen = choose_w0(build, bounds, datamodule, lr=module.optimizer_cfg["lr"], seed=seed, progress=progress).chosen
     pl.seed_everything(seed, workers=True)
     module = LNFModule(**{**hparams, "model": {**hparams["model"], "w0": chosen}})
     if getattr(module.model, "needs_fit", False):
