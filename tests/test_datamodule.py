@@ -114,11 +114,18 @@ def test_potential_targets_are_the_full_order_potential_of_each_snapshot(data_di
     assert set(_module(data_dir).snapshots("train")[0]) == {"points", "values", "velocities"}  # off by default
 
 
-def test_gradient_targets_need_a_scene_that_gives_them(data_dir):
+def test_gradient_targets_are_the_scenes_field_gradients_at_the_observed_points(data_dir):
+    """The pendulum's q = θ u(X): each item's ∇_X q is θ ∇u at its own observed points (θ read off its values)."""
+    from lnf.scenes.pendulum import legendre_mode, legendre_mode_gradient
+
     dm = _module(data_dir)
     dm.gradient_targets = True
-    with pytest.raises(ValueError, match="gradient_weight=0"):
-        dm.snapshots("train")
+    item = dm.snapshots("train")[3]
+    points = item["points"].double().numpy()
+    u, grad_u = legendre_mode(points, (3, 4)), legendre_mode_gradient(points, (3, 4))
+    theta = float(np.dot(item["values"][:, 0].double().numpy(), u) / np.dot(u, u))
+    assert item["gradients"].shape == (len(points), 1, 2)
+    np.testing.assert_allclose(item["gradients"][:, 0].double().numpy(), theta * grad_u, rtol=1e-4, atol=1e-4)
 
 
 def test_acceleration_targets_are_fourth_order_differences_of_the_observed_velocities(data_dir):
