@@ -82,16 +82,19 @@ class BumpPendulum(LiftedPendulum):
     def potential(self, quadrature: Quadrature) -> MomentAnglePotential:
         return MomentAnglePotential(quadrature.weights[:, None] * quadrature.points, self.energy_scale)
 
+    def _bump(self, theta: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """X − c(θ) (…, N, 2) and q = exp(−‖X − c‖²/σ²) (…, N) at points (N, 2)."""
+        offset = np.asarray(points) - self.centre(theta)[..., None, :]
+        return offset, np.exp(-np.sum(offset**2, -1) / self.width**2)
+
     def fields(self, states: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         theta, omega = states[..., 0], states[..., 1]
-        offset = np.asarray(points)[..., :, :] - self.centre(theta)[..., None, :]  # (…, N, 2)
-        q = np.exp(-np.sum(offset**2, -1) / self.width**2)
+        offset, q = self._bump(theta, points)
         dc = self.radius * np.stack([np.cos(theta), np.sin(theta)], -1)  # dc/dθ
         qdot = q * 2.0 * np.einsum("...nk,...k->...n", offset, dc) / self.width**2 * omega[..., None]
         return q[..., None], qdot[..., None]
 
     def field_gradients(self, states: np.ndarray, points: np.ndarray) -> np.ndarray:
         """∇_X q = −2 (X − c(θ)) q / σ² (…, N, 1, 2) at points (N, 2)."""
-        offset = np.asarray(points) - self.centre(np.asarray(states)[..., 0])[..., None, :]  # (…, N, 2)
-        q = np.exp(-np.sum(offset**2, -1) / self.width**2)
+        offset, q = self._bump(np.asarray(states)[..., 0], points)
         return (-2.0 / self.width**2 * offset * q[..., None])[..., None, :]

@@ -18,23 +18,24 @@ PENDULUM_CASES = StabilityCases((0.5, 0.7, 0.85, 0.95, 0.99), "θ0 / π (release
                                 "training range |θ0| ≤ π/2", rotation=(0.0, 7.0), unit=np.pi)
 
 
+def _legendre_factors(points: np.ndarray, degrees: Sequence[int]) -> tuple[list[np.ndarray], float]:
+    """P_{n_k}(X_k) per axis k (each (N,)) and ‖Π_k P_{n_k}‖_{L²([-1,1]^dim)}."""
+    points = np.asarray(points, dtype=np.float64)
+    factors = [legendre.Legendre.basis(int(n))(points[..., k]) for k, n in enumerate(degrees)]
+    return factors, float(np.sqrt(np.prod([2.0 / (2 * int(n) + 1) for n in degrees])))
+
+
 def legendre_mode(points: np.ndarray, degrees: Sequence[int]) -> np.ndarray:
     """u(X) = Π_k P_{n_k}(X_k) / ‖Π_k P_{n_k}‖_{L²([-1,1]^dim)}, so that ‖u‖_{L²} = 1. points (N, dim) → (N,)."""
-    points = np.asarray(points, dtype=np.float64)
-    u = np.ones(points.shape[:-1])
-    norm2 = 1.0
-    for k, n in enumerate(degrees):
-        u = u * legendre.Legendre.basis(int(n))(points[..., k])
-        norm2 *= 2.0 / (2 * int(n) + 1)
-    return u / np.sqrt(norm2)
+    factors, norm = _legendre_factors(points, degrees)
+    return np.prod(factors, axis=0) / norm
 
 
 def legendre_mode_gradient(points: np.ndarray, degrees: Sequence[int]) -> np.ndarray:
     """∇_X u of :func:`legendre_mode`: points (N, dim) → (N, dim)."""
+    factors, norm = _legendre_factors(points, degrees)
     points = np.asarray(points, dtype=np.float64)
-    factors = [legendre.Legendre.basis(int(n))(points[..., k]) for k, n in enumerate(degrees)]
     slopes = [legendre.Legendre.basis(int(n)).deriv()(points[..., k]) for k, n in enumerate(degrees)]
-    norm = np.sqrt(np.prod([2.0 / (2 * int(n) + 1) for n in degrees]))
     columns = [np.prod([slopes[k] if j == k else factors[j] for j in range(len(degrees))], axis=0)
                for k in range(len(degrees))]
     return np.stack(columns, -1) / norm
