@@ -15,13 +15,17 @@ Python; no torch.
 from __future__ import annotations
 
 import math
-from typing import Mapping
+from typing import Mapping, Optional
 
 #: a floor above this is a collapsed embedding; a rollout error above RATIO × the floor is lost in the dynamics
 COLLAPSED = 0.5
 RATIO = 3.0
 #: a rollout that needed this many integration steps per sample (automatic substeps) has stiff dynamics
 STIFF_SUBSTEPS = 8
+#: what to try on a collapsed embedding, where the model does not say (``ReducedModel.collapse_advice``)
+SIREN_COLLAPSE_ADVICE = ("Try another model.w0 (the SIREN's first-layer frequency against the body's size: lower for "
+                         "smooth fields on a large body), more epochs, or check that the data's fields vary between "
+                         "trajectories")
 
 
 def stiffness_finding(metrics: Mapping[str, float], clamped: bool = False) -> list[str]:
@@ -43,11 +47,12 @@ def stiffness_finding(metrics: Mapping[str, float], clamped: bool = False) -> li
 
 
 def read_error_budget(metrics: Mapping[str, float], window: str = "all", clamped: bool = False,
-                      closed: bool = False) -> list[str]:
+                      closed: bool = False, collapse_advice: Optional[str] = None) -> list[str]:
     """Findings (sentences) on `metrics` (a metrics.json dict) in one time window ("all", "in_horizon",
     "extrapolation"); empty when the floor or the error is missing or not finite, or nothing stands out. `clamped`:
     the model's field is clamped (``model.clamp=true``), named as a likely cause of stiff dynamics; `closed`: its
-    dynamics already carry a fitted potential closure (else one is suggested where the dynamics lose the accuracy)."""
+    dynamics already carry a fitted potential closure (else one is suggested where the dynamics lose the accuracy);
+    `collapse_advice`: what the model says to try when its embedding collapsed (None: a SIREN's knobs)."""
     out = stiffness_finding(metrics, clamped)
     floor = metrics.get(f"projection_rel_l2/{window}/median")
     error = metrics.get(f"field_rel_l2/{window}/median")
@@ -56,9 +61,8 @@ def read_error_budget(metrics: Mapping[str, float], window: str = "all", clamped
     floor, error = float(floor), float(error)
     if floor >= COLLAPSED:
         out.append(f"the embedding collapsed: its projection floor projection_rel_l2/{window}/median = {floor:.3g} "
-                   "(near 1: φ does not represent the fields even without dynamics). Try another model.w0 (the "
-                   "SIREN's first-layer frequency against the body's size: lower for smooth fields on a large body), "
-                   "more epochs, or check that the data's fields vary between trajectories")
+                   "(near 1: φ does not represent the fields even without dynamics). "
+                   + (collapse_advice or SIREN_COLLAPSE_ADVICE))
     elif not math.isfinite(error):
         out.append(f"the rollout diverged (field_rel_l2/{window}/median = {error}) while the projection floor is "
                    f"{floor:.3g}: the embedding holds the states, the pulled-back dynamics do not (see the divergence "

@@ -119,6 +119,7 @@ class EvaluationReport:
     scene: Any
     clamped: bool
     closed: bool = False  # the model's dynamics carry a fitted potential closure (lnf/closure.py)
+    collapse_advice: Optional[str] = None  # what the model says to try when its embedding collapsed
 
 
 @torch.no_grad()
@@ -135,7 +136,8 @@ def evaluate_model(model: ReducedModel, data: EvaluationData, spec: EvaluationSp
                                keep_fields=spec.keep_fields, progress=spec.progress, decoding=spec.decoding)
     metrics = {**result.metrics, **long_horizon_check(model, data, spec)}
     metrics["evaluation_seconds"] = time.perf_counter() - start
-    return EvaluationReport(metrics, result, data, spec, model.scene, is_clamped(model), closed=model.has_closure)
+    return EvaluationReport(metrics, result, data, spec, model.scene, is_clamped(model), closed=model.has_closure,
+                            collapse_advice=getattr(model, "collapse_advice", None))
 
 
 def long_horizon_check(model: ReducedModel, data: EvaluationData, spec: EvaluationSpec) -> dict[str, float]:
@@ -169,7 +171,8 @@ def write_report(report: EvaluationReport, output_dir: Path, extra: Optional[dic
     """Log what the metrics say about the error budget, write ``metrics.json`` (the report's metrics and `extra`)
     into `output_dir`, then Figure 3 of the first ``spec.figures`` trajectories into ``output_dir/figures``;
     returns the figures' PNG paths. A figure that cannot be drawn is a warning: the metrics are written first."""
-    for finding in read_error_budget(report.metrics, clamped=report.clamped, closed=report.closed):
+    for finding in read_error_budget(report.metrics, clamped=report.clamped, closed=report.closed,
+                                     collapse_advice=report.collapse_advice):
         logger.warning("%s: %s", report.spec.rollout_label, finding)
     write_json_atomic(Path(output_dir) / "metrics.json", {**report.metrics, **(extra or {})})
     if report.spec.figures <= 0:

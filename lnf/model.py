@@ -27,6 +27,7 @@ from torch import Tensor, nn
 from lnf.boundary import ClampedField
 from lnf.closure import PotentialClosure
 from lnf.dynamics_kind import dynamics_kind
+from lnf.error_budget import SIREN_COLLAPSE_ADVICE
 from lnf.quadrature import Quadrature, QuadratureRule
 from lnf.reduced_model import ReducedModel, as_field
 from lnf.baselines.pod import LinearEmbedding
@@ -201,6 +202,7 @@ class LagrangianNeuralField(ReducedModel):
 
     reduces_through_field = True  # reduce(field=...): the K steps iterate on any φ with a jet (a table of it, too)
     learned_codes = True  # a table of the pullback or a black-box dynamics can be built on its codes
+    collapse_advice = SIREN_COLLAPSE_ADVICE
 
     def __init__(
         self,

@@ -51,6 +51,8 @@ class ReducedModel(nn.Module):
     reduces_through_field: bool = False  # True where reduce() takes field= (ρ̃ iterates on φ: a table of φ may stand in)
     #: True where the codes are a learned field's (lnf's): dynamics that need codes (a table, a black box) apply
     learned_codes: bool = False
+    #: what to try when the embedding collapses (projection floor near 1), in the model's own settings
+    collapse_advice: str = "Train longer, or check that the data's fields vary between trajectories"
     field: nn.Module
 
     def __init__(self, scene: Scene, quadrature: Optional[QuadratureRule] = None) -> None:

@@ -44,3 +44,17 @@ def test_a_closure_is_suggested_only_to_a_model_without_one():
     (closed,) = read_error_budget(_m(0.022, 0.181), closed=True)
     assert "model.closure_degree=4" in bare
     assert "closure" not in closed and "the integrator's order 4" in closed
+
+
+def test_a_collapsed_embedding_gets_the_advice_its_model_gives():
+    """POD-Galerkin has no SIREN frequency: its collapse names its own settings, not model.w0."""
+    from lnf.baselines.full_order import FullOrderModel
+    from lnf.baselines.pod import PODGalerkin
+    from lnf.model import LagrangianNeuralField
+
+    (pod,) = read_error_budget(_m(1.19, 1.19), collapse_advice=PODGalerkin.collapse_advice)
+    assert "model.latent_dim" in pod and "model.w0" not in pod
+    (grid,) = read_error_budget(_m(0.9, 0.9), collapse_advice=FullOrderModel.collapse_advice)
+    assert "model.resolution" in grid and "model.w0" not in grid
+    (ours,) = read_error_budget(_m(0.9, 0.9), collapse_advice=LagrangianNeuralField.collapse_advice)
+    assert "model.w0" in ours

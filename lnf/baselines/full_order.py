@@ -76,6 +76,7 @@ class FullOrderModel(ReducedModel):
 
     trainable = False
     state_is_field = True
+    collapse_advice = "Try a finer model.resolution: the grid does not resolve the fields"
 
     def __init__(self, scene: Scene, resolution: int = 64, quadrature: Any = None) -> None:
         super().__init__(scene, None)

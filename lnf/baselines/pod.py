@@ -190,6 +190,8 @@ class PODGalerkin(ReducedModel):
     """
 
     trainable = False
+    collapse_advice = ("Try more modes (model.latent_dim), a higher model.degree of the Legendre basis, or more "
+                       "training trajectories: the fields lie outside the span of the training observations' POD modes")
 
     def __init__(self, scene: Scene, latent_dim: int = 1, degree: int = 12, ridge: float = 1e-12,
                  max_condition: float = 1e3, quadrature: Optional[QuadratureRule] = None) -> None:
