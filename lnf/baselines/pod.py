@@ -190,8 +190,9 @@ class PODGalerkin(ReducedModel):
     """
 
     trainable = False
-    collapse_advice = ("Try more modes (model.latent_dim), a higher model.degree of the Legendre basis, or more "
-                       "training trajectories: the fields lie outside the span of the training observations' POD modes")
+    collapse_advice = ("Try more modes (model.latent_dim), or more trajectories or observed points: the fields lie "
+                       "outside the span of the training observations' POD modes (the 'POD:' log line gives the "
+                       "variance they capture and the Legendre degree the observed points allowed)")
 
     def __init__(self, scene: Scene, latent_dim: int = 1, degree: int = 12, ridge: float = 1e-12,
                  max_condition: float = 1e3, quadrature: Optional[QuadratureRule] = None) -> None:
