@@ -599,8 +599,9 @@ def test_baselines_drop_the_neural_settings_of_a_scene_experiment():
     assert {"~model.width", "~model.reduction_starts"} <= set(study.method("pod"))
     assert not any(o.startswith("~") for o in study.method("lnf"))
     pendulum = S.Study(name="x", scene="pendulum", mode="reduced", out=ROOT / "outputs" / "unused", threads=1)
-    # the pendulum pins only its SIREN frequency (model.w0; the model's default is auto): POD drops just that
-    assert [o for o in pendulum.method("pod") if o.startswith("~")] == ["~model.w0"]
+    # the pendulum pins its SIREN frequency (model.w0; the model's default is auto) and its gradient loss: POD drops
+    # just those
+    assert [o for o in pendulum.method("pod") if o.startswith("~")] == ["~model.gradient_weight", "~model.w0"]
 
 
 def test_rayleigh_ritz_of_the_exact_mode():
