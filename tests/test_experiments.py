@@ -519,6 +519,7 @@ def test_scenes_script_measures_a_tiny_elastic_checkpoint(scene, tmp_path):
     figures."""
     run = tmp_path / "run"
     _run(["-m", "lnf.train", f"+experiment={scene}", "trainer=smoke", "logger=csv", "scene.mesh=[6,3]",
+          "integrator.max_substeps=4",  # a 1-epoch model is stiff: no rollout crawls at 64 substeps
           "data.n_train=2", "data.n_val=1", "data.n_test=2", "data.n_times=12", "data.train_times=6",
           "data.fine_resolution=8", "data.coarse_resolution=8", "model.width=16", "model.hyper_width=8",
           "quadrature.order=[4,3]", "evaluation.long_steps=4", "evaluation.long_trajectories=1",
@@ -556,6 +557,7 @@ def test_elastic_diagnostics_smoke(tmp_path):
     assert "| `shape` |" in content and "| `modal` (the default) |" in content
     run = tmp_path / "run"
     _run(["-m", "lnf.train", "+experiment=elastic", "trainer=smoke", "logger=csv", "scene.mesh=[6,3]",
+          "integrator.max_substeps=4",  # a 1-epoch model is stiff: no rollout crawls at 64 substeps
           "data.n_train=2", "data.n_val=1", "data.n_test=1", "data.n_times=8", "data.train_times=6",
           "data.fine_resolution=8", "data.coarse_resolution=8", "model.width=16", "model.hyper_width=8",
           "quadrature.order=[4,3]", "evaluation.long_steps=4", "evaluation.long_trajectories=1",
@@ -599,9 +601,10 @@ def test_baselines_drop_the_neural_settings_of_a_scene_experiment():
     assert {"~model.width", "~model.reduction_starts"} <= set(study.method("pod"))
     assert not any(o.startswith("~") for o in study.method("lnf"))
     pendulum = S.Study(name="x", scene="pendulum", mode="reduced", out=ROOT / "outputs" / "unused", threads=1)
-    # the pendulum pins its SIREN frequency (model.w0; the model's default is auto) and its gradient loss: POD drops
-    # just those
-    assert [o for o in pendulum.method("pod") if o.startswith("~")] == ["~model.gradient_weight", "~model.w0"]
+    # the pendulum pins its SIREN's frequency (model.w0; the model's default is auto) and width, and its gradient
+    # loss: POD drops just those
+    assert [o for o in pendulum.method("pod") if o.startswith("~")] == ["~model.gradient_weight", "~model.w0",
+                                                                         "~model.width"]
 
 
 def test_rayleigh_ritz_of_the_exact_mode():
