@@ -158,6 +158,9 @@ SPECS: dict[str, Spec] = {
                                         f"--velocity-weight 0 --w0 {w} --out <folder>/probe.json",
                              metrics=PROBE_METRICS, file="probe.json") for w in (10, 30)},
     "probe-w0": Spec("cells", "python -m experiments.results_tables"),
+    "bench_defaults-pendulum": Spec("study", "python -m experiments.bench_defaults --scenes pendulum --baseline 9310cca "
+                                    "--out outputs/studies/bench_defaults-pendulum",
+                                    raw="outputs/studies/bench_defaults-pendulum", csv="bench_defaults.json"),
     "bench_defaults-pendulum-vertices": Spec("study", "python -m experiments.bench_defaults --override data.coarse_grid=vertices "
                                          "--out outputs/studies/bench_defaults-vertices",
                                          raw="outputs/studies/bench_defaults-vertices", csv="bench_defaults.json"),
