@@ -216,7 +216,7 @@ def test_readme_python_example_runs(trained):
 
 
 BASELINES = {
-    "pod": ["model=pod", "model.latent_dim=2", "+model.width=16"],  # a SIREN setting POD drops with a warning
+    "pod": ["model=pod", "model.latent_dim=2", "++model.width=16"],  # a SIREN setting POD drops with a warning
     "full_order": ["model=full_order", "model.resolution=12"],
     "latent_mlp": ["dynamics=latent_mlp", "dynamics.iterations=20", "model.width=16", "model.hyper_width=8"],
 }
