@@ -137,7 +137,7 @@ def evaluate_model(model: ReducedModel, data: EvaluationData, spec: EvaluationSp
     metrics = {**result.metrics, **long_horizon_check(model, data, spec)}
     metrics["evaluation_seconds"] = time.perf_counter() - start
     return EvaluationReport(metrics, result, data, spec, model.scene, is_clamped(model), closed=model.has_closure,
-                            collapse_advice=getattr(model, "collapse_advice", None))
+                            collapse_advice=model.collapse_advice)
 
 
 def long_horizon_check(model: ReducedModel, data: EvaluationData, spec: EvaluationSpec) -> dict[str, float]:
