@@ -117,11 +117,12 @@ SPECS: dict[str, Spec] = {
     # the same studies' second table: the baselines (POD-Galerkin, Operator Inference, the black box) at the question
     **{f"model_size-{s}-baselines": _study("model_size", s, table=1) for s in ("elastic", "elastic_actuated",
                                                                                "soft_body")},
-    # issue 44 item 2: the actuated cantilever at d = 3, 4 (the first table: lnf; the second: POD-Galerkin k = 3, 4 and OpInf)
-    **{f"model_size-elastic_actuated-d34{tail}": Spec(
-        "study", "python -m experiments.model_size --scene elastic_actuated --dims 3,4 --widths 64 --modes 3,4 "
-        "--out outputs/studies/model_size-elastic_actuated-d34", raw="outputs/studies/model_size-elastic_actuated-d34",
-        table=table, csv="model_size.csv") for tail, table in (("", 0), ("-baselines", 1))},
+    # issue 44 item 2: d = 3, 4 (the first table: lnf; the second: POD-Galerkin k = 3, 4 and OpInf)
+    **{f"model_size-{s}-d34{tail}": Spec(
+        "study", f"python -m experiments.model_size --scene {s} --dims 3,4 --widths 64 --modes 3,4 "
+        f"--out outputs/studies/model_size-{s}-d34", raw=f"outputs/studies/model_size-{s}-d34",
+        table=table, csv="model_size.csv") for s in ("elastic_actuated", "soft_body")
+        for tail, table in (("", 0), ("-baselines", 1))},
     **{f"seeds-{s}": _study("seeds", s) for s in SCENES},
     "cost_scaling-pendulum": _study("cost_scaling", "pendulum"),
     **{f"roofline-{s}": _study("roofline", s) for s in SCENES},

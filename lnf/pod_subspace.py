@@ -1,7 +1,10 @@
 """An embedding that contains the POD subspace: φ(q̃, X) = m(X) + Φ(X) q̃ + ψ(q̃, X) (``model.pod_subspace=true``).
 
 m and Φ are the mean and first d POD modes of the training observations (:func:`lnf.baselines.pod.fit_pod`, fixed
-once fitted), each mode scaled by the spread of its coefficients so that the training codes have unit variance;
+once fitted), every mode scaled by the spread of the first one's coefficients: the first code has unit variance and
+the modes keep their L² orthogonality and equal norms, so the pulled-back mass of the linear part is a multiple of the
+identity (scaled to unit variance each, M̃ had the condition number of the variances' ratio, and at d = 2 on the
+cantilever the training bent it until every rollout diverged);
 ψ is the SIREN (clamped where the model is), its output layer zero at initialisation. So training starts from the
 POD-Galerkin model of the same dimension, whose pulled-back dynamics are the intrusive linear ROM's, and the SIREN
 learns the nonlinear correction: the linear basis plus a learned curved part of quadratic-manifold reduced models.
@@ -60,11 +63,11 @@ class SubspacePlusField(nn.Module):
     @torch.no_grad()
     def fit(self, points: "Tensor | np.ndarray", values: "Tensor | np.ndarray", ridge: float = 1e-12,
             max_condition: float = 1e3) -> dict[str, float]:
-        """m and Φ from training observations: points (n, Nobs, dim_B), values (n, T, Nobs, A); each mode scaled by
-        its coefficients' standard deviation over the n·T snapshots (unit-variance codes)."""
+        """m and Φ from training observations: points (n, Nobs, dim_B), values (n, T, Nobs, A); every mode scaled by
+        the first mode's coefficients' standard deviation over the n·T snapshots (the first code has unit variance)."""
         n, T = np.shape(values)[:2]
         mean, modes, s, info = fit_pod(self.linear.basis, self.latent_dim, points, values, ridge, max_condition)
-        self.linear.set_subspace(mean, modes * (s / math.sqrt(n * T))[None, None, :])
+        self.linear.set_subspace(mean, modes * (s[0] / math.sqrt(n * T)))
         self.fitted.fill_(True)
         return info
 

@@ -4,6 +4,7 @@ import pytest
 import torch
 
 from lnf.baselines import FullOrderModel, LatentMLPDynamics, LegendreBasis, PODGalerkin
+from lnf.baselines.pod import LinearEmbedding
 from lnf.dynamics import ReducedDynamics
 from lnf.quadrature import gauss_legendre_rule, midpoint_grid
 from lnf.scenes.pendulum import LiftedPendulum
@@ -78,6 +79,77 @@ def test_pod_needs_fitting_and_rejects_bad_input():
         PODGalerkin(scene, latent_dim=0)
     with pytest.raises(ValueError, match="points .* and values"):
         pod.fit_to_observations(torch.zeros(3, 5, 2), torch.zeros(3, 5, 1))
+
+
+def _quadratic_embedding(seed=0):
+    """A LinearEmbedding on [0, 2] × [0, 1] (degree 4, 2 components, d = 2) with random m, Φ and symmetric Ψ."""
+    gen = torch.Generator().manual_seed(seed)
+    field = LinearEmbedding([[0.0, 2.0], [0.0, 1.0]], 2, 2, 4).double()
+    nb = field.basis.size
+    quad = torch.randn(nb, 2, 2, 2, generator=gen, dtype=torch.float64)
+    field.set_subspace(torch.randn(nb, 2, generator=gen, dtype=torch.float64),
+                       torch.randn(nb, 2, 2, generator=gen, dtype=torch.float64), quad + quad.transpose(-1, -2))
+    points = torch.rand(3, 5, 2, generator=gen, dtype=torch.float64) * torch.tensor([2.0, 1.0], dtype=torch.float64)
+    return field, points, torch.randn(3, 2, generator=gen, dtype=torch.float64)
+
+
+def test_quadratic_embedding_jet_matches_finite_differences_in_codes_and_space():
+    field, points, codes = _quadratic_embedding()
+    jet = field.jet(codes, points, order=2, spatial=True)
+    eps = 1e-6
+    step = lambda k, n: eps * torch.eye(n, dtype=torch.float64)[k]  # noqa: E731
+    J = torch.stack([(field(codes + step(i, 2), points) - field(codes - step(i, 2), points)) / (2 * eps)
+                     for i in range(2)], -1)
+    H = torch.stack([(field.jet(codes + step(i, 2), points).J - field.jet(codes - step(i, 2), points).J) / (2 * eps)
+                     for i in range(2)], -1)
+    G = torch.stack([(field(codes, points + step(k, 2)) - field(codes, points - step(k, 2))) / (2 * eps)
+                     for k in range(2)], -1)
+    GJ = torch.stack([(field.jet(codes, points + step(k, 2)).J - field.jet(codes, points - step(k, 2)).J) / (2 * eps)
+                      for k in range(2)], -2)
+    for name, fd, exact in (("J", J, jet.J), ("H", H, jet.H), ("G", G, jet.G), ("GJ", GJ, jet.GJ)):
+        assert torch.allclose(fd, exact, atol=1e-5 * exact.abs().max()), name
+    # the same on one set of points shared by the batch
+    shared = field.jet(codes, points[0], order=2, spatial=True)
+    expanded = field.jet(codes, points[0].expand(3, 5, 2).clone(), order=2, spatial=True)
+    for name in ("value", "J", "H", "G", "GJ"):
+        assert torch.equal(getattr(shared, name), getattr(expanded, name)), name
+
+
+def test_linear_embedding_basis_cache_never_serves_freed_points():
+    # points freed and reallocated at the same address must not read the old points' basis
+    field, points, codes = _quadratic_embedding()
+    for shift in (0.01, 0.02, 0.03, 0.04):
+        moved = points + shift
+        fresh = LinearEmbedding([[0.0, 2.0], [0.0, 1.0]], 2, 2, 4).double()
+        fresh.set_subspace(field.mean, field.modes, field.quad)
+        assert torch.equal(field(codes, moved), fresh(codes, moved))
+        del moved
+
+
+def test_quadratic_manifold_recovers_a_quadratic_family_of_fields():
+    # frames m + Φ q + Ψ[q, q] with Ψ orthogonal to Φ: the fit finds most of Ψ, and the frames far better than POD
+    scene = LiftedPendulum()
+    basis = LegendreBasis(scene.bounds, 6)
+    rng = np.random.default_rng(0)
+    nb = basis.size
+    orth, _ = np.linalg.qr(rng.standard_normal((nb, 4)))
+    mean, modes, psi = 0.1 * orth[:, 0], orth[:, 1:3], orth[:, 3]
+    q = rng.uniform(-1, 1, (4, 40, 2)) * np.array([1.0, 0.3])
+    coeffs = mean + q @ modes.T + 0.5 * (q[..., 0] * q[..., 1])[..., None] * psi  # (4, 40, nb)
+    points = np.stack([midpoint_grid(16, scene.bounds).numpy()] * 4)
+    values = np.einsum("inb,itb->itn", np.stack([basis.values(p) for p in points]), coeffs)[..., None]
+    pod = PODGalerkin(scene, latent_dim=2, degree=6, quadratic=True, quadratic_ridge=1e-10).double()
+    info = pod.fit_to_observations(torch.as_tensor(points), torch.as_tensor(values))
+    # the sample's POD modes are not exactly Φ (the quadratic part is not exactly uncorrelated with q in it)
+    assert info["quadratic_explained"] > 0.95
+    pts, vals = torch.as_tensor(points[0]), torch.as_tensor(values[0])
+    linear = PODGalerkin(scene, latent_dim=2, degree=6).double()
+    linear.fit_to_observations(torch.as_tensor(points), torch.as_tensor(values))
+    error = {name: float((m.field(m.reduce(pts, vals), pts) - vals).norm() / vals.norm())
+             for name, m in (("quadratic", pod), ("linear", linear))}
+    assert error["quadratic"] < 0.2 * error["linear"], error
+    with pytest.raises(ValueError, match="quadratic_ridge"):
+        PODGalerkin(scene, quadratic=True, quadratic_ridge=-1.0)
 
 
 def test_full_order_model_integrates_the_scene_on_its_nodes():

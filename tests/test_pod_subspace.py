@@ -58,12 +58,17 @@ def test_an_untrained_model_is_pod_galerkin_and_reduces_to_the_projection():
     x = torch.as_tensor(points[0])
     q = torch.as_tensor(values[0])  # (T, N, 2)
     ours, theirs = model.reduce(x, q), pod.reduce(x, q)
-    # the same subspace, each mode scaled by its coefficients' spread: the same fields, from codes rescaled
+    # the same subspace, every mode scaled by the first one's spread: the same fields, from codes rescaled
     torch.testing.assert_close(model.decode(ours, x), pod.decode(theirs, x))
     torch.testing.assert_close(model.decode(ours, x), q, atol=1e-8, rtol=1e-8)  # two shapes, two modes: exact
-    # unit-variance codes on the training snapshots
+    # the first code has unit variance on the training snapshots, the second that of its mode relative to the first
     codes = torch.cat([model.reduce(torch.as_tensor(points[i]), torch.as_tensor(values[i])) for i in range(4)])
-    assert torch.allclose(codes.std(0), torch.ones(2, dtype=torch.float64), rtol=0.2)
+    ratio = float(pod.singular_values[1] / pod.singular_values[0])
+    torch.testing.assert_close(codes.std(0), torch.tensor([1.0, ratio], dtype=torch.float64), rtol=0.2, atol=0.0)
+    # and the linear part's pulled-back mass is a multiple of the identity (modes of equal L² norm, orthogonal)
+    modes = model.field.linear.modes.flatten(0, 1)
+    gram = modes.T @ modes
+    torch.testing.assert_close(gram, gram[0, 0] * torch.eye(2, dtype=torch.float64))
 
 
 def test_the_subspace_jet_runs_under_torch_func_with_points_wrapped_by_it():

@@ -151,8 +151,9 @@ class FullOrderModel(ReducedModel):
         cache = self.__dict__.setdefault("_tri_cache", {})
         if key not in cache:
             cache.clear()
-            cache[key] = Delaunay(points.double().cpu().numpy())
-        return cache[key]
+            # the entry holds the points too: while it lives, no other tensor can take their address (a stale hit)
+            cache[key] = (Delaunay(points.double().cpu().numpy()), points)
+        return cache[key][0]
 
     def project_velocity(self, codes: Tensor, points: Tensor, velocities: Tensor,
                          weights: Optional[Tensor] = None) -> Tensor:

@@ -1,4 +1,5 @@
-"""POD-Galerkin: the linear special case of our model, φ(q̃, X) = m(X) + Φ(X) q̃ (docs/method.md §7.3).
+"""POD-Galerkin: the linear special case of our model, φ(q̃, X) = m(X) + Φ(X) q̃ (docs/method.md §7.3), and its
+quadratic-manifold extension φ = m + Φ q̃ + Ψ(X)[q̃, q̃] (``quadratic=true``).
 
 The mean m and the k modes Φ are L²-orthonormal functions of X, stored as coefficients in a tensor
 basis of normalised Legendre polynomials on the box B (so they can be evaluated, and differentiated in
@@ -7,6 +8,12 @@ snapshots: each masked training frame is first fitted in that basis by (ridge) l
 observed points; because the basis is L²-orthonormal, the SVD of the coefficient matrix is the POD of
 the fields in L². The reduction ρ is the exact least-squares projection on the observed points, and the
 dynamics are the same pulled-back :class:`lnf.dynamics.ReducedDynamics` as ours (J = Φ, H = 0).
+
+With ``quadratic=true`` the embedding also has a symmetric quadratic term Ψ(X)[q̃, q̃], fitted by ridge least squares
+to what the k modes leave of each training frame, as a function of its POD coordinates (a quadratic manifold). That
+residual is L²-orthogonal to the modes, so Ψ is too, and ρ stays the projection onto Φ; the pulled-back dynamics see
+the curvature (J = Φ + 2Ψ[q̃, ·], H = 2Ψ): the intrusive quadratic-manifold reduced model of geometrically
+nonlinear structures, with the scene's own Lagrangian.
 """
 from __future__ import annotations
 
@@ -86,7 +93,8 @@ class LegendreBasis:
 class LinearEmbedding(nn.Module):
     """φ(q̃, X) = Σ_b B_b(X) (m_b + Σ_i A_bi q̃_i): the mean `mean` (n_basis, A) and modes `modes` (n_basis, A, d)
     are buffers (set by :meth:`PODGalerkin.fit_to_observations`). Same call and ``jet`` signature as
-    :class:`lnf.siren.ModulatedSiren`; J = Φ(X), H = 0."""
+    :class:`lnf.siren.ModulatedSiren`; J = Φ(X), H = 0. With a quadratic part `quad` (n_basis, A, d, d), symmetric in
+    its last two axes (zero unless set), φ gains Ψ(X)[q̃, q̃]: J = Φ + 2Ψ q̃, H = 2Ψ."""
 
     def __init__(self, bounds: list[list[float]], latent_dim: int, out_dim: int, degree: int) -> None:
         super().__init__()
@@ -94,18 +102,22 @@ class LinearEmbedding(nn.Module):
         self.latent_dim, self.out_dim, self.in_dim = int(latent_dim), int(out_dim), len(bounds)
         self.register_buffer("mean", torch.zeros(self.basis.size, out_dim))
         self.register_buffer("modes", torch.zeros(self.basis.size, out_dim, latent_dim))
+        self.register_buffer("quad", torch.zeros(self.basis.size, out_dim, latent_dim, latent_dim))
         self._cache: dict = {}
 
     @torch.no_grad()
-    def set_subspace(self, mean: "np.ndarray | Tensor", modes: "np.ndarray | Tensor") -> None:
-        """The mean (n_basis, A) and modes (n_basis, A, d), in the Legendre basis."""
+    def set_subspace(self, mean: "np.ndarray | Tensor", modes: "np.ndarray | Tensor",
+                     quad: "np.ndarray | Tensor | None" = None) -> None:
+        """The mean (n_basis, A), modes (n_basis, A, d) and quadratic part (n_basis, A, d, d) or None (zero), in the
+        Legendre basis."""
         self.mean.copy_(torch.as_tensor(mean))
         self.modes.copy_(torch.as_tensor(modes))
+        self.quad.copy_(torch.as_tensor(quad) if quad is not None else torch.zeros_like(self.quad))
         self._cache.clear()
 
     def project(self, points: Tensor, values: Tensor, density: Tensor) -> Tensor:
         """argmin_q̃ Σ_j ω0(X_j) ‖m(X_j) + Φ(X_j) q̃ − q_j‖²: the least-squares codes (B, d) of `values` (B, N, A) at
-        `points`, ω0 = `density` (N,) or (B, N)."""
+        `points`, ω0 = `density` (N,) or (B, N) (on the modes alone: the quadratic part is orthogonal to them)."""
         zero = values.new_zeros(values.shape[0], self.latent_dim)
         jet = self.jet(zero, points, order=1)
         weights = density.expand(jet.value.shape[:2]) / points.shape[-2]
@@ -143,8 +155,9 @@ class LinearEmbedding(nn.Module):
                 self._cache.clear()
             if key is None:
                 return B, dB
-            self._cache[key] = (B, dB)
-        return self._cache[key]
+            # the entry holds the points too: while it lives, no other tensor can take their address (a stale hit)
+            self._cache[key] = (B, dB, points)
+        return self._cache[key][:2]
 
     def forward(self, codes: Tensor, points: Tensor) -> Tensor:
         return self.jet(codes, points, order=0).value
@@ -161,17 +174,30 @@ class LinearEmbedding(nn.Module):
         J = J.expand(B, *J.shape[-3:]) if J.ndim == 3 else J
         value = torch.einsum("...nb,ba->...na", basis, mean) + torch.einsum("bnai,bi->bna", J, codes)
         value = value.expand(B, *value.shape[-2:]) if value.ndim == 2 else value
+        curved = bool(self.quad.any())
+        if curved:  # Ψ[q̃, q̃] and its derivatives: J += 2Ψq̃, H = 2Ψ
+            H = 2.0 * torch.einsum("...nb,baij->...naij", basis, self.quad.to(codes.dtype))
+            H = H.expand(B, *H.shape[-4:]) if H.ndim == 4 else H
+            Hq = torch.einsum("bnaij,bj->bnai", H, codes)
+            value = value + 0.5 * torch.einsum("bnai,bi->bna", Hq, codes)
+            J = J + Hq
         jet = FieldJet(value=value)
         if order >= 1:
             jet.J = J
         if order >= 2:
-            jet.H = J.new_zeros(*J.shape, d)
-        if spatial:
+            jet.H = H if curved else J.new_zeros(*J.shape, d)
+        if spatial:  # G = ∇m + ∇Φ q̃ + ∇Ψ[q̃, q̃], GJ = ∇Φ + 2∇Ψ q̃
             grad = grad.to(codes.dtype)
             GJ = torch.einsum("...nbk,bai->...naki", grad, modes)
             GJ = GJ.expand(B, *GJ.shape[-4:]) if GJ.ndim == 4 else GJ
             G = torch.einsum("...nbk,ba->...nak", grad, mean)
-            jet.G = (G.expand(B, *G.shape[-3:]) if G.ndim == 3 else G) + torch.einsum("bnaki,bi->bnak", GJ, codes)
+            G = G.expand(B, *G.shape[-3:]) if G.ndim == 3 else G
+            slope = GJ
+            if curved:
+                GH = 2.0 * torch.einsum("...nbk,baij->...nakij", grad, self.quad.to(codes.dtype))
+                GHq = torch.einsum("bnakij,bj->bnaki", GH.expand(B, *GH.shape[-5:]) if GH.ndim == 5 else GH, codes)
+                slope, GJ = GJ + 0.5 * GHq, GJ + GHq
+            jet.G = G + torch.einsum("bnaki,bi->bnak", slope, codes)
             if order >= 1:
                 jet.GJ = GJ
         return jet
@@ -186,6 +212,8 @@ class PODGalerkin(ReducedModel):
         degree: Legendre degree per axis of the basis the snapshots and modes are represented in.
         ridge: Tikhonov weight of the per-frame snapshot fits, relative to the mean diagonal of PᵀP.
         max_condition: largest condition number of a per-frame fit (it caps the degree used).
+        quadratic: add the quadratic part Ψ[q̃, q̃] (a quadratic manifold, :func:`fit_quadratic_part`).
+        quadratic_ridge: its Tikhonov weight, relative to the mean diagonal of the normal matrix.
         quadrature: rule of the reduced dynamics (as for our model).
     """
 
@@ -195,14 +223,18 @@ class PODGalerkin(ReducedModel):
                        "variance they capture and the Legendre degree the observed points allowed)")
 
     def __init__(self, scene: Scene, latent_dim: int = 1, degree: int = 12, ridge: float = 1e-12,
-                 max_condition: float = 1e3, quadrature: Optional[QuadratureRule] = None) -> None:
+                 max_condition: float = 1e3, quadratic: bool = False, quadratic_ridge: float = 1e-6,
+                 quadrature: Optional[QuadratureRule] = None) -> None:
         super().__init__(scene, quadrature)
         require("model.latent_dim", latent_dim, ("int", 1, None, "the number of POD modes"))
         if not ridge >= 0:
             raise ValueError(f"model.ridge must be ≥ 0, got {ridge!r}")
         if not max_condition >= 1:
             raise ValueError(f"model.max_condition must be ≥ 1, got {max_condition!r}")
+        if not quadratic_ridge >= 0:
+            raise ValueError(f"model.quadratic_ridge must be ≥ 0, got {quadratic_ridge!r}")
         self.ridge, self.max_condition = float(ridge), float(max_condition)
+        self.quadratic, self.quadratic_ridge = bool(quadratic), float(quadratic_ridge)
         self.field = LinearEmbedding(scene.bounds, int(latent_dim), scene.field_dim, degree)
         self.register_buffer("singular_values", torch.zeros(int(latent_dim)))
         self.register_buffer("fitted", torch.tensor(False))
@@ -226,26 +258,31 @@ class PODGalerkin(ReducedModel):
     @torch.no_grad()
     def fit_to_observations(self, points: Tensor, values: Tensor) -> dict[str, float]:
         """Modes from training observations: points (n, Nobs, dim_B), values (n, T, Nobs, A) (:func:`fit_pod`)."""
+        coefficients = frame_coefficients(self.field.basis, points, values, self.ridge, self.max_condition)
         mean, modes, s, info = fit_pod(self.field.basis, self.latent_dim, points, values, self.ridge,
-                                       self.max_condition)
-        self.field.set_subspace(mean, modes)
+                                       self.max_condition, coefficients)
+        quad = None
+        if self.quadratic:
+            quad, explained = fit_quadratic_part(coefficients[0], mean, modes, self.quadratic_ridge)
+            info.update(explained)
+        self.field.set_subspace(mean, modes, quad)
         self.singular_values.copy_(torch.as_tensor(s))
         self.fitted.fill_(True)
         return info
 
     def extra_repr(self) -> str:
-        return f"{super().extra_repr()}, modes={self.latent_dim}, degree={self.field.basis.degree}"
+        return (f"{super().extra_repr()}, modes={self.latent_dim}, degree={self.field.basis.degree}"
+                + (", quadratic" if self.quadratic else ""))
 
 
-def fit_pod(basis: LegendreBasis, k: int, points: "Tensor | np.ndarray", values: "Tensor | np.ndarray", ridge: float,
-            max_condition: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, float]]:
-    """The mean (n_basis, A), the first `k` L²-orthonormal modes (n_basis, A, k) and their singular values (k,) of
-    training observations: points (n, Nobs, dim_B), values (n, T, Nobs, A); and what they capture.
+def frame_coefficients(basis: LegendreBasis, points: "Tensor | np.ndarray", values: "Tensor | np.ndarray",
+                       ridge: float, max_condition: float) -> tuple[np.ndarray, int]:
+    """Each training frame fitted in the Legendre basis on its own observed points: points (n, Nobs, dim_B), values
+    (n, T, Nobs, A) → coefficients (n·T, n_basis·A) and the degree p_eff used.
 
-    Each frame is fitted in the Legendre basis by (ridge, weight `ridge` relative to the mean diagonal of PᵀP) least
-    squares on its own observed points, up to the largest degree p_eff ≤ the basis's whose basis matrix on every
-    trajectory's points has a condition number ≤ `max_condition` (higher degrees would amplify noise, even float32
-    rounding); the SVD of the fitted coefficients gives the mean and the modes."""
+    The fits are (ridge, weight `ridge` relative to the mean diagonal of PᵀP) least squares up to the largest degree
+    p_eff ≤ the basis's whose basis matrix on every trajectory's points has a condition number ≤ `max_condition`
+    (higher degrees would amplify noise, even float32 rounding)."""
     pts = np.asarray(points, dtype=np.float64)
     vals = np.asarray(values, dtype=np.float64)
     if pts.ndim != 3 or vals.ndim != 4 or vals.shape[0] != pts.shape[0] or vals.shape[2] != pts.shape[1]:
@@ -269,13 +306,53 @@ def fit_pod(basis: LegendreBasis, k: int, points: "Tensor | np.ndarray", values:
         gram += ridge * np.trace(gram) / len(keep) * np.eye(len(keep))
         rhs = P.T @ vals[i].transpose(1, 0, 2).reshape(n_obs, T * A)
         coeffs[i][:, keep] = np.linalg.solve(gram, rhs).reshape(len(keep), T, A).transpose(1, 0, 2)
-    S = coeffs.reshape(n * T, basis.size * A)
+    return coeffs.reshape(n * T, basis.size * A), p_eff
+
+
+def fit_pod(basis: LegendreBasis, k: int, points: "Tensor | np.ndarray", values: "Tensor | np.ndarray", ridge: float,
+            max_condition: float, coefficients: Optional[tuple[np.ndarray, int]] = None
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, float]]:
+    """The mean (n_basis, A), the first `k` L²-orthonormal modes (n_basis, A, k) and their singular values (k,) of
+    training observations: points (n, Nobs, dim_B), values (n, T, Nobs, A); and what they capture.
+
+    Because the basis is L²-orthonormal, the SVD of the frames' coefficients (:func:`frame_coefficients`, or
+    `coefficients` if the caller has them) gives the mean and the modes."""
+    S, p_eff = coefficients if coefficients is not None else frame_coefficients(basis, points, values, ridge,
+                                                                                max_condition)
+    A = S.shape[1] // basis.size
     mean = S.mean(0)
     _, s, Vt = np.linalg.svd(S - mean, full_matrices=False)
     if len(s) < k:
         raise ValueError(f"POD fit: only {len(s)} snapshots for {k} modes")
     captured = float((s[:k] ** 2).sum() / max((s**2).sum(), 1e-300))
     log.info("POD: %d modes capture %.6f of the snapshot variance (degree %d of %d per axis, %d snapshots)",
-             k, captured, p_eff, basis.degree, n * T)
+             k, captured, p_eff, basis.degree, len(S))
     modes = Vt[:k].reshape(k, basis.size, A).transpose(1, 2, 0).copy()
     return mean.reshape(basis.size, A), modes, s[:k], {"pod_energy_captured": captured, "pod_degree": float(p_eff)}
+
+
+def fit_quadratic_part(coefficients: np.ndarray, mean: np.ndarray, modes: np.ndarray, ridge: float
+                       ) -> tuple[np.ndarray, dict[str, float]]:
+    """Ψ (n_basis, A, k, k), symmetric in its last two axes, of the quadratic manifold m + Φq + Ψ[q, q]: the ridge
+    least-squares fit of what the modes leave of each frame, coefficients (n·T, n_basis·A) minus m and its projection
+    Φq, by the products q_i q_j (i ≤ j) of its POD coordinates q. `ridge` is relative to the mean diagonal of the
+    products' normal matrix. Also the share of that residual (in L²) the fit explains."""
+    nb, A, k = modes.shape
+    centred = coefficients - mean.reshape(1, -1)
+    flat = modes.reshape(nb * A, k)
+    q = centred @ flat  # (nT, k): the modes are orthonormal in these coefficients
+    residual = centred - q @ flat.T
+    rows, cols = np.triu_indices(k)
+    products = q[:, rows] * q[:, cols]  # (nT, k(k+1)/2)
+    gram = products.T @ products
+    gram += ridge * np.trace(gram) / len(rows) * np.eye(len(rows))
+    fitted = np.linalg.solve(gram, products.T @ residual)  # (k(k+1)/2, nb·A)
+    quad = np.zeros((nb * A, k, k))
+    for m, (i, j) in enumerate(zip(rows, cols)):  # Σ_{i≤j} c_ij q_i q_j = Σ_ij Ψ_ij q_i q_j with Ψ symmetric
+        quad[:, i, j] += fitted[m] / (1.0 if i == j else 2.0)
+        if i != j:
+            quad[:, j, i] += fitted[m] / 2.0
+    left = residual - products @ fitted
+    explained = 1.0 - float((left ** 2).sum() / max((residual ** 2).sum(), 1e-300))
+    log.info("quadratic manifold: Ψ explains %.4f of what the %d modes leave (ridge %.0e)", explained, k, ridge)
+    return quad.reshape(nb, A, k, k), {"quadratic_explained": explained}
