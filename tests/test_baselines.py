@@ -126,6 +126,17 @@ def test_linear_embedding_basis_cache_never_serves_freed_points():
         del moved
 
 
+def test_a_linear_embedding_saved_before_the_quadratic_part_loads_with_psi_zero():
+    field, points, codes = _quadratic_embedding()
+    old = {k: v for k, v in field.state_dict().items() if k != "quad"}  # a checkpoint of an earlier lnf
+    fresh = LinearEmbedding([[0.0, 2.0], [0.0, 1.0]], 2, 2, 4).double()
+    fresh.load_state_dict(old)
+    assert not fresh.quad.any()
+    linear = LinearEmbedding([[0.0, 2.0], [0.0, 1.0]], 2, 2, 4).double()
+    linear.set_subspace(field.mean, field.modes)
+    assert torch.equal(fresh(codes, points), linear(codes, points))
+
+
 def test_quadratic_manifold_recovers_a_quadratic_family_of_fields():
     # frames m + Φ q + Ψ[q, q] with Ψ orthogonal to Φ: the fit finds most of Ψ, and the frames far better than POD
     scene = LiftedPendulum()

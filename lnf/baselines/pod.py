@@ -103,6 +103,7 @@ class LinearEmbedding(nn.Module):
         self.register_buffer("mean", torch.zeros(self.basis.size, out_dim))
         self.register_buffer("modes", torch.zeros(self.basis.size, out_dim, latent_dim))
         self.register_buffer("quad", torch.zeros(self.basis.size, out_dim, latent_dim, latent_dim))
+        self._register_load_state_dict_pre_hook(_zero_quadratic_part, with_module=True)
         self._cache: dict = {}
 
     @torch.no_grad()
@@ -201,6 +202,11 @@ class LinearEmbedding(nn.Module):
             if order >= 1:
                 jet.GJ = GJ
         return jet
+
+
+def _zero_quadratic_part(module: LinearEmbedding, state_dict: dict[str, Tensor], prefix: str, *args: object) -> None:
+    """Checkpoints written before the quadratic part existed load as linear embeddings (Ψ = 0)."""
+    state_dict.setdefault(prefix + "quad", torch.zeros_like(module.quad))
 
 
 class PODGalerkin(ReducedModel):
