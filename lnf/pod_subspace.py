@@ -20,7 +20,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from lnf.baselines.pod import LinearEmbedding, fit_pod
+from lnf.baselines.pod import LinearEmbedding, fit_pod, frame_coefficients
 from lnf.siren import FieldJet
 
 
@@ -66,7 +66,8 @@ class SubspacePlusField(nn.Module):
         """m and Φ from training observations: points (n, Nobs, dim_B), values (n, T, Nobs, A); every mode scaled by
         the first mode's coefficients' standard deviation over the n·T snapshots (the first code has unit variance)."""
         n, T = np.shape(values)[:2]
-        mean, modes, s, info = fit_pod(self.linear.basis, self.latent_dim, points, values, ridge, max_condition)
+        coefficients = frame_coefficients(self.linear.basis, points, values, ridge, max_condition)
+        mean, modes, s, info = fit_pod(self.linear.basis, self.latent_dim, coefficients)
         self.linear.set_subspace(mean, modes * (s[0] / math.sqrt(n * T)))
         self.fitted.fill_(True)
         return info

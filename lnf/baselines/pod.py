@@ -265,8 +265,7 @@ class PODGalerkin(ReducedModel):
     def fit_to_observations(self, points: Tensor, values: Tensor) -> dict[str, float]:
         """Modes from training observations: points (n, Nobs, dim_B), values (n, T, Nobs, A) (:func:`fit_pod`)."""
         coefficients = frame_coefficients(self.field.basis, points, values, self.ridge, self.max_condition)
-        mean, modes, s, info = fit_pod(self.field.basis, self.latent_dim, points, values, self.ridge,
-                                       self.max_condition, coefficients)
+        mean, modes, s, info = fit_pod(self.field.basis, self.latent_dim, coefficients)
         quad = None
         if self.quadratic:
             quad, explained = fit_quadratic_part(coefficients[0], mean, modes, self.quadratic_ridge)
@@ -315,16 +314,13 @@ def frame_coefficients(basis: LegendreBasis, points: "Tensor | np.ndarray", valu
     return coeffs.reshape(n * T, basis.size * A), p_eff
 
 
-def fit_pod(basis: LegendreBasis, k: int, points: "Tensor | np.ndarray", values: "Tensor | np.ndarray", ridge: float,
-            max_condition: float, coefficients: Optional[tuple[np.ndarray, int]] = None
+def fit_pod(basis: LegendreBasis, k: int, coefficients: tuple[np.ndarray, int]
             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, float]]:
     """The mean (n_basis, A), the first `k` L²-orthonormal modes (n_basis, A, k) and their singular values (k,) of
-    training observations: points (n, Nobs, dim_B), values (n, T, Nobs, A); and what they capture.
+    the training frames' coefficients and degree (:func:`frame_coefficients`); and what they capture.
 
-    Because the basis is L²-orthonormal, the SVD of the frames' coefficients (:func:`frame_coefficients`, or
-    `coefficients` if the caller has them) gives the mean and the modes."""
-    S, p_eff = coefficients if coefficients is not None else frame_coefficients(basis, points, values, ridge,
-                                                                                max_condition)
+    Because the basis is L²-orthonormal, the SVD of the frames' coefficients gives the mean and the modes."""
+    S, p_eff = coefficients
     A = S.shape[1] // basis.size
     mean = S.mean(0)
     _, s, Vt = np.linalg.svd(S - mean, full_matrices=False)
@@ -353,11 +349,9 @@ def fit_quadratic_part(coefficients: np.ndarray, mean: np.ndarray, modes: np.nda
     gram = products.T @ products
     gram += ridge * np.trace(gram) / len(rows) * np.eye(len(rows))
     fitted = np.linalg.solve(gram, products.T @ residual)  # (k(k+1)/2, nb·A)
-    quad = np.zeros((nb * A, k, k))
-    for m, (i, j) in enumerate(zip(rows, cols)):  # Σ_{i≤j} c_ij q_i q_j = Σ_ij Ψ_ij q_i q_j with Ψ symmetric
-        quad[:, i, j] += fitted[m] / (1.0 if i == j else 2.0)
-        if i != j:
-            quad[:, j, i] += fitted[m] / 2.0
+    upper = np.zeros((nb * A, k, k))
+    upper[:, rows, cols] = fitted.T
+    quad = 0.5 * (upper + upper.transpose(0, 2, 1))  # Σ_{i≤j} c_ij q_i q_j = Σ_ij Ψ_ij q_i q_j with Ψ symmetric
     left = residual - products @ fitted
     explained = 1.0 - float((left ** 2).sum() / max((residual ** 2).sum(), 1e-300))
     log.info("quadratic manifold: Ψ explains %.4f of what the %d modes leave (ridge %.0e)", explained, k, ridge)
