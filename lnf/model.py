@@ -189,6 +189,8 @@ class LagrangianNeuralField(ReducedModel):
         pod_subspace: φ = m(X) + Φ(X) q̃ + ψ(q̃, X), the mean and d POD modes of the training observations (in a
             Legendre basis of degree `pod_degree` per axis, fitted by :meth:`fit_subspace` before training) plus the
             SIREN ψ, zero at initialisation (:mod:`lnf.pod_subspace`); not in the paper.
+        pod_residual_scale: ε > 0, the fixed factor on ψ's output with `pod_subspace` (φ = m + Φ q̃ + ε ψ): ε < 1 moves
+            ψ as a smaller learning rate would (1.0: checkpoints written before the option existed).
         quadrature: rule for the integrals of the reduced dynamics (default Gauss–Legendre 8×8).
         dynamics: None (the pulled-back Lagrangian, our model); a ``lnf.tabulated.TabulatedDynamics`` spec
             (the same Lagrangian with M̃ and Ṽ read from a Chebyshev table on the training codes' range widened
@@ -222,6 +224,7 @@ class LagrangianNeuralField(ReducedModel):
         clamp: bool = False,
         pod_subspace: bool = False,
         pod_degree: int = 12,
+        pod_residual_scale: float = 1.0,
         energy_weight: float = 0.0,
         dynamics_weight: float = 0.0,
         closure_degree: int = 0,
@@ -257,7 +260,7 @@ class LagrangianNeuralField(ReducedModel):
         if pod_subspace:  # φ = m + Φ q̃ + ψ: training starts from POD-Galerkin of the same dimension
             zero_output(self.field)
             linear = LinearEmbedding(scene.bounds, int(latent_dim), scene.field_dim, pod_degree)
-            self.field = SubspacePlusField(linear, self.field)
+            self.field = SubspacePlusField(linear, self.field, require("model.pod_residual_scale", pod_residual_scale))
         require("model.closure_degree", closure_degree)
         # a potential closure ΔṼ fitted after training (lnf/closure.py); its buffers travel in the checkpoint
         self.closure = PotentialClosure(latent_dim, closure_degree) if int(closure_degree) else None

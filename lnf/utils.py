@@ -48,6 +48,7 @@ NUMBER_RULES: dict[str, tuple[str, float, Optional[float], str]] = {
     "model.resolution": ("int", 1, None, "grid points per axis of the full-order model"),
     "model.degree": ("int", 0, None, "the Legendre degree per axis"),
     "model.pod_degree": ("int", 0, None, "the Legendre degree per axis of the POD part"),
+    "model.pod_residual_scale": (">", 0, None, "ε, the scale of the learned part ψ of φ = m + Φ q̃ + ε ψ"),
     "model.ridge": ("≥", 0, None, "the Tikhonov weight"),
     "model.max_condition": (">", 0, None, "the largest condition number of the fits"),
     "optimizer.lr": (">", 0, None, "the learning rate of the field; 0 trains nothing"),

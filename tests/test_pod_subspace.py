@@ -26,15 +26,16 @@ def test_the_jet_is_the_sum_of_the_subspace_and_the_siren_and_matches_autodiff()
     linear = LinearEmbedding(scene.bounds, 2, 2, degree=3).double()
     linear.set_subspace(torch.randn(16, 2, dtype=torch.float64), torch.randn(16, 2, 2, dtype=torch.float64))
     siren = ModulatedSiren(latent_dim=2, in_dim=2, out_dim=2, width=16, depth=2, w0=3.0, hyper_width=8).double()
-    field = SubspacePlusField(linear, siren)
+    field = SubspacePlusField(linear, siren, residual_scale=0.3)  # φ = m + Φ q̃ + 0.3 ψ
     codes = torch.randn(3, 2, dtype=torch.float64)
     points = torch.rand(5, 2, dtype=torch.float64) * torch.tensor([1.0, 0.4], dtype=torch.float64)
     jet = field.jet(codes, points, order=2, spatial=True)
-    torch.testing.assert_close(jet.value, linear(codes, points) + siren(codes, points))
+    torch.testing.assert_close(jet.value, linear(codes, points) + 0.3 * siren(codes, points))
+    torch.testing.assert_close(field(codes, points), jet.value)
 
     a, b = linear.jet(codes, points, order=1, spatial=True), siren.jet(codes, points, order=2, spatial=True)
-    torch.testing.assert_close(jet.G, a.G + b.G)  # the parts' own jets are checked against autodiff elsewhere
-    torch.testing.assert_close(jet.GJ, a.GJ + b.GJ)
+    torch.testing.assert_close(jet.G, a.G + 0.3 * b.G)  # the parts' own jets are checked against autodiff elsewhere
+    torch.testing.assert_close(jet.GJ, a.GJ + 0.3 * b.GJ)
     eps = 1e-6  # (the Legendre basis is evaluated in NumPy, outside autodiff: central differences in q̃)
     for i in range(2):
         step = torch.zeros(2, dtype=torch.float64)
