@@ -151,3 +151,35 @@ def test_a_run_fits_the_closure_and_its_checkpoint_loads_with_it(tmp_path):
     bad = subprocess.run([sys.executable, "-m", "experiments.closure_ablation", "--ckpt", str(tmp_path / "none.ckpt")],
                          cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert bad.returncode != 0 and "--ckpt: no such file" in bad.stderr
+
+
+class _ClosedModel:
+    """The part of a ReducedModel that shooting uses: a closure on a fixed base dynamics, rolled out by an integrator."""
+
+    def __init__(self, base, closure):
+        self.base, self.closure = base, closure
+
+    def as_model(self, x):
+        return x
+
+    def dynamics(self):
+        return ClosedDynamics(self.base, self.closure)
+
+    def rollout(self, q0, v0, dt, steps, integrator, on_divergence, dynamics, controls):
+        return get_integrator(integrator).integrate(dynamics, q0, v0, dt, steps, on_divergence=on_divergence)
+
+
+def test_shooting_recovers_the_closure_whose_motion_the_codes_follow_from_a_wrong_start(pendulum):
+    from lnf.closure_choice import shoot_closure
+
+    base = _pendulum_dynamics(pendulum)
+    truth = PotentialClosure(1, 2).double()  # ΔṼ = 3 q²: a stiffer spring than the pullback's
+    truth.coef.copy_(torch.tensor([0.0, 3.0]))
+    q0 = torch.tensor([[0.5], [-0.8], [1.1]], dtype=torch.float64)
+    dt = 0.02
+    motion = get_integrator("rk4").integrate(ClosedDynamics(base, truth), q0, torch.zeros_like(q0), dt, 150)
+    fitted = PotentialClosure(1, 2).double()
+    fitted.coef.copy_(torch.tensor([0.2, 2.0]))  # a third too soft and off-centre: the phase drifts
+    start, end = shoot_closure(_ClosedModel(base, fitted), motion.q, motion.v, dt, None, "rk4")
+    assert end < 1e-3 * start
+    torch.testing.assert_close(fitted.coef, truth.coef, rtol=1e-4, atol=1e-5)
