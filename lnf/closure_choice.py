@@ -26,8 +26,9 @@ log = logging.getLogger("lnf.closure")
 #: the closure's candidate regularizers (ridge λ, relative to the normal matrix's mean diagonal)
 CLOSURE_REGULARIZERS = (1e-8, 1e-5, 1e-2)
 CLOSURE_VAL_TRAJECTORIES = 8
-#: the training trajectories (evenly spaced) whose rollouts the shooting refinement fits, and its evaluations per term
-SHOOTING_TRAJECTORIES = 16
+#: the training trajectories (evenly spaced) whose rollouts the shooting refinement fits (a table's rollouts cost
+#: milliseconds; the exact pullback's, a jet per step: fewer), and its evaluations per term
+SHOOTING_TRAJECTORIES, SHOOTING_TRAJECTORIES_EXACT = 16, 4
 SHOOTING_EVALUATIONS_PER_TERM = 20
 
 
@@ -35,7 +36,7 @@ def fit_closure(model: Any, datamodule: Any, spec: Any) -> dict[str, float]:
     """Fit the model's potential closure ΔṼ (lnf/closure.py) after training: the pulled-back equations' residual
     along the encoded training trajectories, a ridge fit per regularizer of :data:`CLOSURE_REGULARIZERS`, and the
     one (or none: the pure pullback) whose rollouts of the first validation trajectories have the smallest field
-    error within the training horizon. The residual fit with the best validation error is then refined by shooting
+    error within the training horizon. The best so far (a residual fit, or zero) is then refined by shooting
     (:func:`shoot_closure`) and the refinement is a candidate of its own. `spec`: the test's EvaluationSpec (its
     integrator and decoding)."""
     start = time.perf_counter()
@@ -65,7 +66,7 @@ def fit_closure(model: Any, datamodule: Any, spec: Any) -> dict[str, float]:
     best = (val_error(), 0.0, 0.0)  # (error, λ, misfit); λ = 0: none
     chosen = None  # the coefficients of the best candidate, once one beats the pure pullback
     pullback_error = best[0]
-    best_fit = (math.inf, 0.0, 0.0, None)  # the best residual fit, chosen or not: where shooting starts
+    start_from = (0.0, 0.0, closure.coef.clone())  # (λ, misfit, coefficients) where shooting starts: the best so far
     shot = False
     # a candidate whose validation rollout leaves the training codes' range by more than the table's margin is rejected:
     # its polynomial extrapolates there, and a tabulated pullback would fall back to the exact jets
@@ -78,15 +79,14 @@ def fit_closure(model: Any, datamodule: Any, spec: Any) -> dict[str, float]:
                      lam, misfit, err)
             if err < best[0]:
                 best, chosen = (err, lam, misfit), closure.coef.clone()
-            if err < best_fit[0] or best_fit[3] is None:
-                best_fit = (err, lam, misfit, closure.coef.clone())
-        closure.coef.copy_(best_fit[3])
+                start_from = (lam, misfit, chosen)
+        closure.coef.copy_(start_from[2])
         cost = shoot_closure(model, q, v, datamodule.dt, controls, spec.integrator)
         err = val_error()
-        log.info("closure by shooting from λ = %.0e: training-window misfit %.3g → %.3g of the codes' spread, "
-                 "validation field error %.4g in the horizon", best_fit[1], *cost, err)
+        log.info("closure by shooting from %s: training-window misfit %.3g → %.3g of the codes' spread, validation "
+                 "field error %.4g in the horizon", f"λ = {start_from[0]:.0e}" if start_from[0] else "zero", *cost, err)
         if err < best[0]:
-            best, chosen, shot = (err, best_fit[1], best_fit[2]), closure.coef.clone(), True
+            best, chosen, shot = (err, start_from[0], start_from[1]), closure.coef.clone(), True
     finally:  # the fitted model rolls out anywhere
         closure.guard_margin = None
     closure.reset()
@@ -95,6 +95,7 @@ def fit_closure(model: Any, datamodule: Any, spec: Any) -> dict[str, float]:
     seconds = time.perf_counter() - start
     log.info("potential closure: %s (validation field error %.4g in the horizon, the pure pullback's %.4g), %.1f s",
              f"λ = {best[1]:.0e}{', refined by shooting' if shot else ''}, {len(closure.coef)} terms" if best[1] > 0
+             else f"fitted by shooting from zero, {len(closure.coef)} terms" if shot
              else "none (the pure pullback is best)", best[0], pullback_error, seconds)
     return {"closure_regularizer": best[1], "closure_val_error": best[0], "closure_pullback_val_error": pullback_error,
             "closure_misfit": best[2], "closure_shooting": float(shot), "closure_seconds": seconds}
@@ -105,15 +106,17 @@ def shoot_closure(model: Any, codes: torch.Tensor, velocities: torch.Tensor, dt:
     """Refine the model's closure coefficients in place by shooting: Levenberg–Marquardt (scipy) on the gap between
     the closed dynamics' rollouts from each encoded training start (q̃, q̃̇)(t0) and the encoded codes `codes` (n, T, d)
     over the training window, in units of the codes' spread, on :data:`SHOOTING_TRAJECTORIES` evenly spaced
-    trajectories, under the evaluation's `integrator`. A residual fit matches the equations sample by sample; this
+    trajectories (:data:`SHOOTING_TRAJECTORIES_EXACT` where the dynamics are not a table), under the evaluation's
+    `integrator`. A residual fit matches the equations sample by sample; this
     matches their solutions, so the phase after many periods. A rollout that diverges or leaves the guarded range
     counts as a gap of 10 spreads per sample. Returns the RMS gap (start, end)."""
     closure = model.closure
-    rows = np.unique(np.linspace(0, codes.shape[0] - 1, min(SHOOTING_TRAJECTORIES, codes.shape[0])).round().astype(int))
+    dynamics = model.dynamics()  # the closed dynamics read the coefficients as they change
+    count = SHOOTING_TRAJECTORIES if getattr(dynamics, "small_tensors", False) else SHOOTING_TRAJECTORIES_EXACT
+    rows = np.unique(np.linspace(0, codes.shape[0] - 1, min(count, codes.shape[0])).round().astype(int))
     q, v = model.as_model(codes[rows]), model.as_model(velocities[rows])
     forces = None if controls is None else controls[rows]
     spread = float(q.std().clamp_min(1e-12))
-    dynamics = model.dynamics()  # the closed dynamics read the coefficients as they change
 
     def gap(theta: np.ndarray) -> np.ndarray:
         closure.coef.copy_(torch.as_tensor(theta, dtype=closure.coef.dtype))
