@@ -1,5 +1,7 @@
 """φ = m + Φ q̃ + ψ (model.pod_subspace): the jet is the sum's, training starts at POD-Galerkin, ρ̃ starts at the
 projection onto the modes."""
+import copy
+
 import numpy as np
 import torch
 
@@ -85,3 +87,9 @@ def test_the_subspace_jet_runs_under_torch_func_with_points_wrapped_by_it():
     _, derivative = torch.func.jvp(lambda c: linear(c, points.to(c)), (codes,), (tangent,))
     J = linear.jet(codes, points, order=1).J
     torch.testing.assert_close(derivative, torch.einsum("bnai,bi->bna", J, tangent))
+    # a model copied after a table was built (experiments/scenes.py copies it for its damped rollout) copies without
+    # the basis cache, whose entries may hold the transform's wrapped tensors
+    torch.func.jvp(lambda c: linear(c, points.to(c)), (codes,), (tangent,))
+    twin = copy.deepcopy(linear)
+    assert twin._cache == {}
+    torch.testing.assert_close(twin(codes, points), linear(codes, points))

@@ -106,6 +106,13 @@ class LinearEmbedding(nn.Module):
         self._register_load_state_dict_pre_hook(_zero_quadratic_part, with_module=True)
         self._cache: dict = {}
 
+    def __getstate__(self) -> dict:
+        """A copy or pickle leaves the basis cache behind (it may hold tensors a torch.func transform wrapped, which
+        cannot be copied: ``copy.deepcopy`` of a tabulated model failed on them)."""
+        state = dict(super().__getstate__())
+        state["_cache"] = {}
+        return state
+
     @torch.no_grad()
     def set_subspace(self, mean: "np.ndarray | Tensor", modes: "np.ndarray | Tensor",
                      quad: "np.ndarray | Tensor | None" = None) -> None:
