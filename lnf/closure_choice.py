@@ -37,8 +37,8 @@ def fit_closure(model: Any, datamodule: Any, spec: Any) -> dict[str, float]:
     along the encoded training trajectories, a ridge fit per regularizer of :data:`CLOSURE_REGULARIZERS`, and the
     one (or none: the pure pullback) whose rollouts of the first validation trajectories have the smallest field
     error within the training horizon. The residual fit with the best validation error (chosen or not) is then
-    refined by shooting (:func:`shoot_closure`) and the refinement is a candidate of its own. `spec`: the test's EvaluationSpec (its
-    integrator and decoding)."""
+    refined by shooting (:func:`shoot_closure`) and the refinement is a candidate of its own. `spec`: the test's
+    EvaluationSpec (its integrator and decoding)."""
     start = time.perf_counter()
     closure = model.closure
     points, values, velocities = (torch.as_tensor(a) for a in datamodule.observations("train"))
@@ -109,8 +109,8 @@ def shoot_closure(model: Any, codes: torch.Tensor, velocities: torch.Tensor, dt:
     the closed dynamics' rollouts from each encoded training start (q̃, q̃̇)(t0) and the encoded codes `codes` (n, T, d)
     over the training window, in units of the codes' spread, on :data:`SHOOTING_TRAJECTORIES` evenly spaced
     trajectories (:data:`SHOOTING_TRAJECTORIES_EXACT` where the dynamics are not a table), under the evaluation's
-    `integrator`. A residual fit matches the equations sample by sample; this
-    matches their solutions, so the phase after many periods. A rollout that diverges or leaves the guarded range
+    `integrator`. A residual fit matches the equations sample by sample; this matches their solutions, so the phase
+    after many periods. A rollout that diverges or leaves the guarded range
     counts as a gap of 10 spreads per sample. Returns the RMS gap (start, end)."""
     closure = model.closure
     # the closed dynamics (the model's table where it has one), reading the coefficients as they change:
