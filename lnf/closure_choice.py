@@ -116,6 +116,9 @@ def shoot_closure(model: Any, codes: torch.Tensor, velocities: torch.Tensor, dt:
     # the closed dynamics (the model's table where it has one), reading the coefficients as they change:
     # model.dynamics() leaves a zero closure out
     base = model.dynamics()
+    if closure.active and not isinstance(base, ClosedDynamics):  # e.g. a learned latent dynamics: no closure applies
+        log.info("closure by shooting skipped: %s does not roll out the closure", type(base).__name__)
+        return math.nan, math.nan
     dynamics = ClosedDynamics(base.base if isinstance(base, ClosedDynamics) else base, closure)
     count = SHOOTING_TRAJECTORIES if getattr(dynamics, "small_tensors", False) else SHOOTING_TRAJECTORIES_EXACT
     rows = np.unique(np.linspace(0, codes.shape[0] - 1, min(count, codes.shape[0])).round().astype(int))
