@@ -41,14 +41,8 @@ def fit_closure(model: Any, datamodule: Any, spec: Any) -> dict[str, float]:
     EvaluationSpec (its integrator and decoding)."""
     start = time.perf_counter()
     closure = model.closure
-    points, values, velocities = (torch.as_tensor(a) for a in datamodule.observations("train"))
     model.eval()
     train, val = datamodule.split("train"), datamodule.split("val")
-    controls = None if train.controls is None else torch.as_tensor(train.controls)
-    with torch.no_grad():
-        q, v = latent_trajectories(model, points, values, velocities)
-        codes, residual = equation_residual(model.lagrangian_dynamics(), q, v, datamodule.dt,
-                                            float(train.times[0]), controls)
     data = EvaluationData.of_split(val, model.scene, CLOSURE_VAL_TRAJECTORIES)
     check = dataclasses.replace(spec, split="val", label="closure choice: validation rollout", long_steps=0,
                                 figures=0, keep_fields=0, progress=False)
@@ -66,6 +60,15 @@ def fit_closure(model: Any, datamodule: Any, spec: Any) -> dict[str, float]:
     best = (val_error(), 0.0, 0.0)  # (error, λ, misfit); λ = 0: none
     chosen = None  # the coefficients of the best candidate, once one beats the pure pullback
     pullback_error = best[0]
+    if getattr(model, "latent_dynamics", None) is not None:  # the black box's rollouts never read a closure
+        log.info("potential closure: none (%s rolls out learned latent dynamics)", type(model).__name__)
+        return _record(best, pullback_error, False, time.perf_counter() - start)
+    points, values, velocities = (torch.as_tensor(a) for a in datamodule.observations("train"))
+    controls = None if train.controls is None else torch.as_tensor(train.controls)
+    with torch.no_grad():
+        q, v = latent_trajectories(model, points, values, velocities)
+        codes, residual = equation_residual(model.lagrangian_dynamics(), q, v, datamodule.dt,
+                                            float(train.times[0]), controls)
     start_from = (math.inf, 0.0, 0.0, None)  # (error, λ, misfit, coefficients) of the best residual fit, chosen or not
     shot = False
     # a candidate whose validation rollout leaves the training codes' range by more than the table's margin is rejected:
@@ -85,7 +88,8 @@ def fit_closure(model: Any, datamodule: Any, spec: Any) -> dict[str, float]:
         # local minimum of the phase (soft body: misfit 0.051 → 0.051; from the residual fit 0.074 → 0.012)
         closure.coef.copy_(start_from[3])
         cost = shoot_closure(model, q, v, datamodule.dt, controls, spec.integrator)
-        err = val_error()
+        # unchanged coefficients (the search found nothing better) keep their validation error: no second rollout
+        err = val_error() if cost[1] < cost[0] else start_from[0]
         log.info("closure by shooting from λ = %.0e: training-window misfit %.3g → %.3g of the codes' spread, "
                  "validation field error %.4g in the horizon", start_from[1], *cost, err)
         if err < best[0]:
@@ -99,6 +103,11 @@ def fit_closure(model: Any, datamodule: Any, spec: Any) -> dict[str, float]:
     log.info("potential closure: %s (validation field error %.4g in the horizon, the pure pullback's %.4g), %.1f s",
              f"λ = {best[1]:.0e}{', refined by shooting' if shot else ''}, {len(closure.coef)} terms" if best[1] > 0
              else "none (the pure pullback is best)", best[0], pullback_error, seconds)
+    return _record(best, pullback_error, shot, seconds)
+
+
+def _record(best: tuple[float, float, float], pullback_error: float, shot: bool, seconds: float) -> dict[str, float]:
+    """What metrics.json records of the choice: `best` is (validation error, λ (0: none), residual misfit)."""
     return {"closure_regularizer": best[1], "closure_val_error": best[0], "closure_pullback_val_error": pullback_error,
             "closure_misfit": best[2], "closure_shooting": float(shot), "closure_seconds": seconds}
 
@@ -116,9 +125,6 @@ def shoot_closure(model: Any, codes: torch.Tensor, velocities: torch.Tensor, dt:
     # the closed dynamics (the model's table where it has one), reading the coefficients as they change:
     # model.dynamics() leaves a zero closure out
     base = model.dynamics()
-    if closure.active and not isinstance(base, ClosedDynamics):  # e.g. a learned latent dynamics: no closure applies
-        log.info("closure by shooting skipped: %s does not roll out the closure", type(base).__name__)
-        return math.nan, math.nan
     dynamics = ClosedDynamics(base.base if isinstance(base, ClosedDynamics) else base, closure)
     count = SHOOTING_TRAJECTORIES if getattr(dynamics, "small_tensors", False) else SHOOTING_TRAJECTORIES_EXACT
     rows = np.unique(np.linspace(0, codes.shape[0] - 1, min(count, codes.shape[0])).round().astype(int))
