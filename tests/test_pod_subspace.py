@@ -93,3 +93,38 @@ def test_the_subspace_jet_runs_under_torch_func_with_points_wrapped_by_it():
     twin = copy.deepcopy(linear)
     assert twin._cache == {}
     torch.testing.assert_close(twin(codes, points), linear(codes, points))
+
+
+def test_the_linear_embedding_evaluates_only_the_degrees_its_coefficients_use():
+    """Coefficients up to degree 2 of a degree-5 basis: the jet (value, J, H, G, GJ) is the full basis's, from the
+    degree-2 basis alone; new coefficients (set_subspace, load_state_dict) are seen."""
+    torch.manual_seed(0)
+    scene = ElasticCantilever(mesh=(4, 2))
+    linear = LinearEmbedding(scene.bounds, 2, 2, degree=5).double()
+    low = torch.as_tensor(linear.basis.multi_indices().max(1) <= 2)
+    mean = torch.randn(36, 2, dtype=torch.float64) * low[:, None]
+    modes = torch.randn(36, 2, 2, dtype=torch.float64) * low[:, None, None]
+    quad = torch.randn(36, 2, 2, 2, dtype=torch.float64) * low[:, None, None, None]
+    linear.set_subspace(mean, modes, quad + quad.transpose(-1, -2))
+    points = torch.rand(7, 2, dtype=torch.float64) * torch.tensor([1.0, 0.4], dtype=torch.float64)
+    codes = torch.randn(3, 2, dtype=torch.float64)
+    jet = linear.jet(codes, points, order=2, spatial=True)
+    assert linear._coefficients()[0].degree == 2
+    basis = torch.as_tensor(linear.basis.values(points.numpy()))  # the full degree-5 basis (36 functions)
+    grad = torch.as_tensor(linear.basis.gradients(points.numpy()))
+    Hq = 2 * torch.einsum("nc,caij,zj->znai", basis, linear.quad, codes)  # c: basis function, z: batch
+    J = torch.einsum("nc,cai->nai", basis, linear.modes) + Hq
+    value = torch.einsum("nc,ca->na", basis, linear.mean) + torch.einsum("nc,cai,zi->zna", basis, linear.modes, codes) \
+        + 0.5 * torch.einsum("znai,zi->zna", Hq, codes)
+    G = torch.einsum("nck,ca->nak", grad, linear.mean) + torch.einsum("nck,cai,zi->znak", grad, linear.modes, codes) \
+        + torch.einsum("nck,caij,zi,zj->znak", grad, linear.quad, codes, codes)
+    torch.testing.assert_close(jet.value, value)
+    torch.testing.assert_close(jet.J, J)
+    torch.testing.assert_close(jet.H, 2 * torch.einsum("nc,caij->naij", basis, linear.quad).expand_as(jet.H))
+    torch.testing.assert_close(jet.G, G)
+    full = torch.randn(36, 2, dtype=torch.float64)  # every degree used: the whole basis again
+    linear.load_state_dict({**linear.state_dict(), "mean": full})
+    assert linear._coefficients()[0].degree == 5
+    torch.testing.assert_close(linear(codes, points)[0], torch.einsum("nc,ca->na", basis, full)
+                               + torch.einsum("nc,cai,i->na", basis, linear.modes, codes[0])
+                               + torch.einsum("nc,caij,i,j->na", basis, linear.quad, codes[0], codes[0]))

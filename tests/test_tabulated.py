@@ -144,3 +144,13 @@ def test_a_tabulated_rollout_runs_on_one_torch_thread_and_restores_the_callers_c
         torch.set_num_threads(threads)
     assert seen == [2, 1]  # the exact pullback keeps the caller's threads, the table runs on one
     torch.testing.assert_close(table.q, exact.q, atol=1e-4, rtol=0)
+
+
+def test_the_off_box_parts_from_one_jet_equal_forward_mode_differentiation_of_the_mass():
+    """∂M̃/∂q̃ from J and H of one second-order jet (the flat kinetic energy) against jvp of M̃."""
+    _, exact, _ = _nonlinear_setup()
+    tab = TabulatedDynamics(exact, [-0.2, -0.2], [0.2, 0.2])
+    q = torch.tensor([[1.1, 0.2], [-0.5, 0.9], [0.3, -1.4]], dtype=torch.float64)
+    one_jet = tab._exact_parts(q)
+    assert one_jet.shape == (3, 3, 4)  # (B, 1 + d, M̃'s 3 entries + Ṽ)
+    torch.testing.assert_close(one_jet, tab._exact_parts_jvp(q), atol=1e-10, rtol=1e-10)

@@ -105,12 +105,13 @@ class LinearEmbedding(nn.Module):
         self.register_buffer("quad", torch.zeros(self.basis.size, out_dim, latent_dim, latent_dim))
         self._register_load_state_dict_pre_hook(_zero_quadratic_part, with_module=True)
         self._cache: dict = {}
+        self._active: Optional[tuple] = None
 
     def __getstate__(self) -> dict:
         """A copy or pickle leaves the basis cache behind (it may hold tensors a torch.func transform wrapped, which
         cannot be copied: ``copy.deepcopy`` of a tabulated model failed on them)."""
         state = dict(super().__getstate__())
-        state["_cache"] = {}
+        state["_cache"], state["_active"] = {}, None
         return state
 
     @torch.no_grad()
@@ -146,18 +147,43 @@ class LinearEmbedding(nn.Module):
                              f"(shape {tuple(points.shape)} inside, {tuple(plain.shape)} outside)")
         return plain
 
-    def _basis(self, points: Tensor, spatial: bool) -> tuple[Tensor, Optional[Tensor]]:
+    def _coefficients(self) -> tuple[LegendreBasis, Tensor, Tensor, Optional[Tensor]]:
+        """(basis, mean, modes, quadratic part or None where it is zero) on the basis up to the highest degree any
+        coefficient uses: the per-frame fits cap the degree (a 3-D body's degree-12 basis of 2197 functions held
+        coefficients up to degree 4, 125 functions), and the rest are zero to rounding (below 1e-10 of the largest).
+        Recomputed when a buffer changes (set_subspace, load_state_dict)."""
+        tensors = (self.mean, self.modes, self.quad)
+        try:
+            key = tuple((t.data_ptr(), t._version, t.dtype, t.device) for t in tensors)
+        except RuntimeError:  # inference tensors have no version counter: recompute
+            key = None
+        if key is None or self._active is None or self._active[0] != key:
+            # plain tensors even under a torch.func transform (the tabulated pullback's jvp): cached, and copyable
+            with torch.no_grad(), torch._C._DisableFuncTorch():
+                size = torch.cat([t.reshape(self.basis.size, -1) for t in tensors], 1).abs().amax(1)
+                used = (size > 1e-10 * size.max()).cpu().numpy()
+                indices = self.basis.multi_indices()
+                degree = int(indices[used].max()) if used.any() else 0
+                columns = torch.as_tensor(np.flatnonzero((indices <= degree).all(1)), device=self.mean.device)
+                quad = self.quad[columns] if bool(self.quad.any()) else None
+                active = (self.mean[columns], self.modes[columns], quad)
+            basis = self.basis if degree == self.basis.degree else LegendreBasis(self.basis.bounds.tolist(), degree)
+            self._active = (key, basis, *active)
+        return self._active[1:]
+
+    def _basis(self, points: Tensor, spatial: bool, basis: LegendreBasis) -> tuple[Tensor, Optional[Tensor]]:
+        """`basis` (N, n_basis) and its spatial gradients (N, n_basis, dim_B) or None at `points`, cached."""
         points = self._plain(points)
         try:  # inference tensors have no version counter
             version = None if points.is_inference() else points._version
-            key = (points.data_ptr(), tuple(points.shape), version, points.dtype, spatial)
+            key = (points.data_ptr(), tuple(points.shape), version, points.dtype, spatial, basis.degree)
         except RuntimeError:
             key = None
         if key is None or key not in self._cache:
             with torch._C._DisableFuncTorch():  # under a transform even detach() would wrap the points again
                 pts = points.detach().double().cpu().numpy()
-            B = torch.as_tensor(self.basis.values(pts), dtype=self.mean.dtype, device=self.mean.device)
-            dB = (torch.as_tensor(self.basis.gradients(pts), dtype=self.mean.dtype, device=self.mean.device)
+            B = torch.as_tensor(basis.values(pts), dtype=self.mean.dtype, device=self.mean.device)
+            dB = (torch.as_tensor(basis.gradients(pts), dtype=self.mean.dtype, device=self.mean.device)
                   if spatial else None)
             if len(self._cache) > 8:
                 self._cache.clear()
@@ -175,16 +201,17 @@ class LinearEmbedding(nn.Module):
         if codes.ndim != 2 or codes.shape[-1] != self.latent_dim:
             raise ValueError(f"codes must have shape (B, {self.latent_dim}), got {tuple(codes.shape)}")
         B, d = codes.shape
-        basis, grad = self._basis(points, spatial)
+        legendre_basis, mean, modes, quad = self._coefficients()
+        basis, grad = self._basis(points, spatial, legendre_basis)
         basis = basis.to(codes.dtype)
-        mean, modes = self.mean.to(codes.dtype), self.modes.to(codes.dtype)
+        mean, modes = mean.to(codes.dtype), modes.to(codes.dtype)
         J = torch.einsum("...nb,bai->...nai", basis, modes)  # (N, A, d) or (B, N, A, d)
         J = J.expand(B, *J.shape[-3:]) if J.ndim == 3 else J
         value = torch.einsum("...nb,ba->...na", basis, mean) + torch.einsum("bnai,bi->bna", J, codes)
         value = value.expand(B, *value.shape[-2:]) if value.ndim == 2 else value
-        curved = bool(self.quad.any())
+        curved = quad is not None
         if curved:  # Ψ[q̃, q̃] and its derivatives: J += 2Ψq̃, H = 2Ψ
-            H = 2.0 * torch.einsum("...nb,baij->...naij", basis, self.quad.to(codes.dtype))
+            H = 2.0 * torch.einsum("...nb,baij->...naij", basis, quad.to(codes.dtype))
             H = H.expand(B, *H.shape[-4:]) if H.ndim == 4 else H
             Hq = torch.einsum("bnaij,bj->bnai", H, codes)
             value = value + 0.5 * torch.einsum("bnai,bi->bna", Hq, codes)
@@ -202,7 +229,7 @@ class LinearEmbedding(nn.Module):
             G = G.expand(B, *G.shape[-3:]) if G.ndim == 3 else G
             slope = GJ
             if curved:
-                GH = 2.0 * torch.einsum("...nbk,baij->...nakij", grad, self.quad.to(codes.dtype))
+                GH = 2.0 * torch.einsum("...nbk,baij->...nakij", grad, quad.to(codes.dtype))
                 GHq = torch.einsum("bnakij,bj->bnaki", GH.expand(B, *GH.shape[-5:]) if GH.ndim == 5 else GH, codes)
                 slope, GJ = GJ + 0.5 * GHq, GJ + GHq
             jet.G = G + torch.einsum("bnaki,bi->bnak", slope, codes)
