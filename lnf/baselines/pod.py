@@ -330,11 +330,14 @@ def frame_coefficients(basis: LegendreBasis, points: "Tensor | np.ndarray", valu
     n, T, n_obs, A = vals.shape
     full = np.stack([basis.values(pts[i]) for i in range(n)])  # (n, Nobs, n_basis)
     p_eff = -1
-    for p in range(basis.degree, -1, -1):  # the largest degree the observed points determine well
+    # the largest degree the observed points determine well, searched upwards: the columns of degree p are among
+    # those of p + 1, and a matrix's condition number is at least any of its column subsets', so the first degree
+    # that fails ends the search (from the top, a 3-D body paid SVDs of up to 2 197 columns first)
+    for p in range(basis.degree + 1):
         cols = np.flatnonzero((basis.multi_indices() <= p).all(-1))
-        if len(cols) <= n_obs and max(np.linalg.cond(full[i][:, cols]) for i in range(n)) <= max_condition:
-            p_eff = p
+        if len(cols) > n_obs or max(np.linalg.cond(full[i][:, cols]) for i in range(n)) > max_condition:
             break
+        p_eff = p
     if p_eff < 0:
         raise ValueError(f"POD fit: {n_obs} observed points per frame are too few to fit any field")
     keep = np.flatnonzero((basis.multi_indices() <= p_eff).all(-1))
