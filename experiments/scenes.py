@@ -52,6 +52,7 @@ from typing import Any, Callable, Optional
 
 import numpy as np
 import torch
+from omegaconf import OmegaConf
 
 from experiments import scene_figures as figures, studylib
 from lnf.baselines.latent_mlp import LatentMLPDynamics
@@ -74,20 +75,27 @@ def datamodule_of(model: Any) -> SnapshotDataModule:
     return checkpoint_datamodule(model, checkpoint_data(model, data_dir.resolve())[0])
 
 
-def evaluate(model: Any, split: Any, integrator: Any = None, states: np.ndarray | None = None,
-             stride: int = 1) -> Any:
+def evaluate(model: Any, split: Any, integrator: Any, states: np.ndarray | None = None, stride: int = 1) -> Any:
     """Roll out the split (or `states`, re-simulated ground truth: the scene's fields, energies and loads of them) on
-    the stored fine grid with `integrator` (default: MIDPOINT); `stride` subsamples time."""
+    the stored fine grid with `integrator`; `stride` subsamples time."""
     data = EvaluationData.of_split(split, model.scene, stride=stride)
     if states is not None:
         data = replace(data, states=states[:, ::stride], true_fields=None, true_velocities=None, true_energies=None,
                        controls=None)
-    return evaluate_model(model, data, EvaluationSpec(integrator=integrator or MIDPOINT, label="rollout")).rollouts
+    return evaluate_model(model, data, EvaluationSpec(integrator=integrator, label="rollout")).rollouts
 
 
-# the structure-preserving integrator of these measurements: order 2 (the order-4 composition's backward substep
-# leaves some double-pendulum rollouts unsolved at dt = 0.05)
-MIDPOINT = {"name": "implicit_midpoint", "order": 2}
+def experiment_integrator_order(scene: str, config_dir: Path | None) -> int:
+    """The order of the implicit midpoint rule that `python -m lnf.train +experiment=<scene>` rolls out with: the
+    experiment's ``integrator.order``, else conf/integrator/implicit_midpoint.yaml's (the checkpoint does not
+    record it). The double pendulum and the bump set 2, the elastic scenes 4."""
+    try:
+        order = OmegaConf.select(OmegaConf.load(studylib.experiment_file(scene, config_dir)), "integrator.order")
+    except FileNotFoundError:
+        order = None
+    if order is None:
+        order = OmegaConf.load(studylib.config_file("integrator/implicit_midpoint", config_dir)).get("order", 2)
+    return int(order)
 
 
 def pick(metrics: dict[str, float], *keys: str) -> dict[str, float]:
@@ -118,12 +126,13 @@ class Context:
     dm: SnapshotDataModule
     out: Path
     options: argparse.Namespace
+    integrator: dict  # the structure-preserving rule of our rollouts: {"name": "implicit_midpoint", "order": 2|4}
     split: Any = field(init=False)
     base: Any = field(init=False)
 
     def __post_init__(self) -> None:
         self.split = self.dm.split("test")
-        self.base = evaluate(self.model, self.split)
+        self.base = evaluate(self.model, self.split, self.integrator)
 
     @property
     def scene(self) -> Any:
@@ -145,7 +154,7 @@ def black_box(ctx: Context) -> dict[str, Any]:
     horizon = float(split.times[split.train_times])
     steps = int(round(20 * horizon / dt))
     # the first 8 test trajectories, 20x the horizon (1000 steps each)
-    drift_ours = split_long_check(model, split, 8, steps, MIDPOINT)
+    drift_ours = split_long_check(model, split, 8, steps, ctx.integrator)
     drift_bb = split_long_check(black, split, 8, steps, "rk4")
     keys = ("vpt/median", "vpt/min", "field_rel_l2/in_horizon/median", "field_rel_l2/all/median",
             "projection_rel_l2/all/median", "energy_rel_err/median", "diverged_fraction")
@@ -167,7 +176,7 @@ def modes(ctx: Context) -> dict[str, Any]:
     for k in range(1, max_modes + 1):
         pod = PODGalerkin(model.scene, latent_dim=k, degree=24).double()
         pod.fit_to_observations(points, values)
-        metrics = evaluate(pod, split).metrics
+        metrics = evaluate(pod, split, ctx.integrator).metrics
         pod_rows.append({"k": k, **pick(metrics, "field_rel_l2/all/median", "projection_rel_l2/all/median",
                                         "diverged_fraction")})
         print(f"POD k={k}: {pod_rows[-1]}", flush=True)
@@ -222,7 +231,7 @@ def speedup(ctx: Context) -> dict[str, Any]:
                                            "field_rel_l2/all/median", "field_rel_l2/extrapolation/median",
                                            "projection_rel_l2/in_horizon/median", "energy_rel_err/median",
                                            "energy_drift/max", "vpt/median")}
-    long = split_long_check(model, split, 4, 1000, MIDPOINT)
+    long = split_long_check(model, split, 4, 1000, ctx.integrator)
     result["ours"].update(long)
     # full-order reference: the largest step that meets the target against the stored ground truth, in the horizon
     states0 = split.states[:, 0]
@@ -244,7 +253,7 @@ def speedup(ctx: Context) -> dict[str, Any]:
     # reduced model: largest sample step (rollout step) that meets the target
     rom = []
     for stride in (1, 2, 4):
-        ev = base if stride == 1 else evaluate(model, split, stride=stride)
+        ev = base if stride == 1 else evaluate(model, split, ctx.integrator, stride=stride)
         rom.append({"dt": float(times[stride] - times[0]), "field_rel_l2/in_horizon/median":
                     float(ev.metrics["field_rel_l2/in_horizon/median"]),
                     "diverged_fraction": float(ev.metrics["diverged_fraction"])})
@@ -257,7 +266,7 @@ def speedup(ctx: Context) -> dict[str, Any]:
     v0 = model.project_velocity(q0, pts[::4], torch.as_tensor(split.velocities[:, 0, ::4], dtype=pts.dtype))
     steps = int(round(times[in_h][-1] / rom_best["dt"]))
     controls = trajectory_controls(scene, states0, q0)
-    roll = lambda n: model.rollout(q0, v0, dt=rom_best["dt"], steps=n, integrator=MIDPOINT,  # noqa: E731
+    roll = lambda n: model.rollout(q0, v0, dt=rom_best["dt"], steps=n, integrator=ctx.integrator,  # noqa: E731
                                    on_divergence="mark", controls=controls)
     tabulation = getattr(model, "tabulation", None)
     timings = {}
@@ -344,7 +353,7 @@ def loads(ctx: Context) -> dict[str, Any]:
     training = np.asarray(scene.controls(ctx.dm.split("train").states[:, 0]), dtype=np.float64)
     load = unseen_load(training, ctx.options.unseen_load)
     unseen_states = with_controls(scene, states0, np.tile(load, (len(states0), 1)))
-    unseen = evaluate(model, split, states=scene.simulate(unseen_states, times))
+    unseen = evaluate(model, split, ctx.integrator, states=scene.simulate(unseen_states, times))
     text = ", ".join(f"{x:.3g}" for x in load)
     ranges = ", ".join(f"{a:.3g}…{b:.3g}" for a, b in zip(training.min(0), training.max(0)))
     figures.probe_figure(unseen, ctx.out / "tip_unseen_load.png",
@@ -367,7 +376,7 @@ def decay(ctx: Context) -> dict[str, Any]:
     times = split.times
     states0 = split.states[:, 0]
     free = with_controls(scene, states0, np.zeros_like(scene.controls(states0))) if scene.has_controls else states0
-    ev = evaluate(model, split, states=scene.simulate(free, times))
+    ev = evaluate(model, split, ctx.integrator, states=scene.simulate(free, times))
     pred, true = figures.energy_figure(ev, scene.energy_scale, "free decay (no load)", ctx.out / "decay.png")
     return {"free_decay": {**pick(ev.metrics, *LOAD_KEYS),
                            "energy_ratio_end_over_start_ours_median": float(np.median(pred[:, -1] / pred[:, 0])),
@@ -384,7 +393,7 @@ def damped(ctx: Context) -> dict[str, Any]:
     if hasattr(model, "set_tabulation"):
         model.set_tabulation(None)
     split, times = ctx.split, ctx.split.times
-    ev = evaluate(model, split, states=scene.simulate(split.states[:, 0], times))
+    ev = evaluate(model, split, ctx.integrator, states=scene.simulate(split.states[:, 0], times))
     horizon = float(times[split.train_times])
     pred, true = figures.energy_figure(ev, scene.energy_scale, f"damped, α = {rate:g} 1/s (trained undamped)",
                                        ctx.out / "damped.png", horizon)
@@ -503,6 +512,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--measure", nargs="+", choices=sorted(MEASUREMENTS), default=None,
                         help="measurements to run (default: every one the scene's declarations allow)")
     parser.add_argument("--threads", type=int, default=None)
+    parser.add_argument("--integrator-order", type=int, choices=[2, 4], default=None,
+                        help="order of the implicit midpoint rule of our rollouts (default: the experiment's "
+                             "integrator.order, as lnf.train rolls out)")
     parser.add_argument("--dynamics", choices=["checkpoint", "lagrangian", "tabulated"], default="checkpoint",
                         help="our rollouts: as the checkpoint was trained, the exact pullback, or the tabulated one "
                              "(speedup also times the exact one for comparison)")
@@ -566,7 +578,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         model.set_tabulation((model.tabulation or {}) if args.dynamics == "tabulated" else None)
     if getattr(model, "tabulation", None) is not None:
         ensure_code_range(model, Path(dm.path), dm.config)
-    ctx = Context(model=model, dm=dm, out=out, options=args)
+    order = args.integrator_order or experiment_integrator_order(name, config_dir)
+    ctx = Context(model=model, dm=dm, out=out, options=args, integrator={"name": "implicit_midpoint", "order": order})
+    print(f"[scenes] our rollouts: the implicit midpoint rule of order {order}", flush=True)
     result: dict[str, Any] = {"scene": name, "measurements": [], "skipped": {}}
     for m in chosen:
         print(f"[scenes] {m} ...", flush=True)
@@ -582,6 +596,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         result["measurements"].append(m)
     result["skipped"].update({m: why for m, why in reasons.items() if why is not None})
     result["dynamics"] = "tabulated" if getattr(model, "tabulation", None) is not None else "lagrangian"
+    result["integrator"] = ctx.integrator
     result["seconds"] = time.perf_counter() - start
     result["checkpoint"] = str(ckpt)
     result["machine"] = {"platform": platform.platform(), "processor": platform.processor(),

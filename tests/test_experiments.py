@@ -479,6 +479,7 @@ def test_scenes_script_measures_a_tiny_double_pendulum_checkpoint(tmp_path):
     result = json.loads((tmp_path / "out" / "results.json").read_text())
     assert result["measurements"] == ["black_box"]
     assert {"ours", "black_box", "drift_ratio_median"} <= set(result) and (tmp_path / "out" / "vpt.png").is_file()
+    assert result["integrator"] == {"name": "implicit_midpoint", "order": 2}  # the experiment's, as lnf.train's
 
 
 def test_scenes_script_chooses_its_measurements_by_what_the_scene_declares():
@@ -533,6 +534,7 @@ def test_scenes_script_measures_a_tiny_elastic_checkpoint(scene, tmp_path):
           "--out", str(out), "--threads", "1", "--measure", *measure], png_only=True)
     result = json.loads((out / "results.json").read_text())
     assert result["measurements"] == measure
+    assert result["integrator"]["order"] == 4  # conf/experiment/<scene>.yaml's, as lnf.train rolls out
     if scene == "elastic":
         assert result["speedup"] > 0 and len(result["rom"]) == 3 and (out / "tip.png").is_file()
         assert len(result["fom"]) == 5 and result["fom"][0]["step_factor"] == 1.0  # the FEM's own step, then larger
