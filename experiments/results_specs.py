@@ -151,6 +151,8 @@ SPECS: dict[str, Spec] = {
     )),
     "soft_body_default": Spec("metrics", "python -m lnf.train +experiment=soft_body", metrics=SCENE_METRICS),
     "elastic_default": Spec("metrics", "python -m lnf.train +experiment=elastic", metrics=SCENE_METRICS),
+    "elastic_scenes": Spec("metrics", "python -m experiments.scenes --scene elastic --measure speedup",
+                           metrics=FEM_SCENE_MEASUREMENTS[:-1], file="results.json"),
     "elastic_actuated_default": Spec("metrics", "python -m lnf.train +experiment=elastic_actuated",
                                      metrics=SCENE_METRICS),
     "soft_body_scenes": Spec("metrics", "python -m experiments.scenes --scene soft_body --measure speedup shape damped",
