@@ -17,6 +17,7 @@ Shapes: q̃, q̃̇, p̃ (B, d).
 """
 from __future__ import annotations
 
+import logging
 import math
 import time
 from typing import Any, Optional, Sequence
@@ -28,6 +29,8 @@ from torch import Tensor
 
 from lnf.dynamics import ReducedDynamics
 from lnf.dynamics_kind import TABULATED
+
+log = logging.getLogger(__name__)
 from lnf.reduction import solve_mass
 
 #: the table's box: the training codes' range widened by this fraction of its span on each side (``dynamics.margin``)
@@ -177,6 +180,26 @@ class TabulatedDynamics:
         self.info: dict[str, Any] = {"table_nodes": n, "table_points": n ** self.d, "table_error": error,
                                      "table_tol": tol, "table_seconds": time.perf_counter() - start,
                                      "table_low": self.low, "table_high": self.high}
+        if error > tol:
+            log.warning(self._roughness_message(n, error, tol))
+
+    def _roughness_message(self, n: int, error: float, tol: float) -> str:
+        """Why a table that misses its tolerance matters: φ's pullback wiggles in q̃; for d = 1, the range of the
+        stiffness Ṽ''/M̃ on the box (by finite differences of the table's Ṽ') and how often it changes sign."""
+        msg = (f"the pulled-back M̃ and Ṽ are not smooth in q̃: a Chebyshev table of {n} nodes per axis reaches a "
+               f"relative error of {error:.1e} (dynamics.tol {tol:.0e}). Rollouts read its interpolant; a pullback "
+               "that wiggles in q̃ (an embedding that learned fine detail across its codes) often has regions of "
+               "negative stiffness where rollouts diverge")
+        if self.d == 1:
+            q = np.linspace(self.low[0], self.high[0], 1025)
+            with torch.no_grad():
+                out = self.table(torch.as_tensor(q[:, None], dtype=self.dtype, device=self.device)).double().cpu()
+            stiffness = np.gradient(out[:, 1, 1].numpy(), q)
+            omega2 = stiffness / out[:, 0, 0].numpy()
+            changes = int((np.diff(np.sign(stiffness)) != 0).sum())
+            msg += (f"; on the box the stiffness Ṽ''/M̃ ranges over {omega2.min():.3g} … {omega2.max():.3g} 1/s² "
+                    f"and changes sign {changes} times")
+        return msg
 
     def __repr__(self) -> str:
         return (f"TabulatedDynamics(d={self.d}, nodes={self.info['table_nodes']}, "

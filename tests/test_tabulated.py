@@ -154,3 +154,18 @@ def test_the_off_box_parts_from_one_jet_equal_forward_mode_differentiation_of_th
     one_jet = tab._exact_parts(q)
     assert one_jet.shape == (3, 3, 4)  # (B, 1 + d, M̃'s 3 entries + Ṽ)
     torch.testing.assert_close(one_jet, tab._exact_parts_jvp(q), atol=1e-10, rtol=1e-10)
+
+
+def test_a_table_that_misses_its_tolerance_says_the_pullback_is_not_smooth(pendulum, caplog):
+    """dynamics.tol out of reach of the largest table: a warning that names the error and, at d = 1, the range of
+    the stiffness Ṽ''/M̃ on the box (the pendulum's: −1 … 1 on [−2.5, 2.5] up to its mass's scale)."""
+    exact = _pendulum_dynamics(pendulum)
+    with caplog.at_level("WARNING", logger="lnf.tabulated"):
+        TabulatedDynamics(exact, [-2.5], [2.5], tol=1e-300, min_nodes=8, max_nodes=8)
+    text = caplog.text
+    assert "not smooth in q̃" in text and "8 nodes per axis" in text and "changes sign" in text
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="lnf.tabulated"):
+        TabulatedDynamics(exact, [-2.5], [2.5])  # the default tolerance is met: nothing to say
+    assert "not smooth" not in caplog.text
+
