@@ -29,9 +29,9 @@ from torch import Tensor
 
 from lnf.dynamics import ReducedDynamics
 from lnf.dynamics_kind import TABULATED
+from lnf.reduction import solve_mass
 
 log = logging.getLogger(__name__)
-from lnf.reduction import solve_mass
 
 #: the table's box: the training codes' range widened by this fraction of its span on each side (``dynamics.margin``)
 TABLE_MARGIN = 0.25
