@@ -121,6 +121,23 @@ class ReducedDynamics:
         jet = self._jet(q, order=1)
         return self._mass(jet), self.potential_fn(jet.value, jet.G), self._gravity(jet)
 
+    def static_terms_with_mass_slope(self, q: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """(M̃, Ṽ, g̃) as :meth:`static_terms` and ∂M̃/∂q̃ (B, k, d, d), [:, k] = ∂M̃/∂q̃_k. The flat kinetic energy's
+        slope comes from the same second-order jet, ∂M̃_ij/∂q̃_k = Σ_n w_n ω0_n (H_nik·J_nj + J_ni·H_njk); with a
+        modal kinetic energy M̃ is differentiated in forward mode instead."""
+        if self.modal is not None:
+            from torch.func import jvp
+
+            eye = torch.eye(q.shape[-1], dtype=q.dtype, device=q.device)
+            with torch.enable_grad():
+                slope = torch.stack([jvp(self.mass_matrix, (q,), (eye[k].expand_as(q),))[1]
+                                     for k in range(q.shape[-1])], 1)
+            return (*self.static_terms(q), slope)
+        jet = self._jet(q, order=2)
+        half = torch.einsum("n,bnaik,bnaj->bkij", self.density_weights.to(jet.J), jet.H, jet.J)
+        return (self._mass(jet), self.potential_fn(jet.value, jet.G), self._gravity(jet),
+                half + half.transpose(-1, -2))
+
     def acceleration(self, q: Tensor, v: Tensor, t: float = 0.0, extra_force: Optional[Tensor] = None) -> Tensor:
         """q̃̈ = M̃⁻¹ (−c̃ − g̃ + τ̃ [+ `extra_force` (B, d), e.g. a closure's −∇ΔṼ]) (B, d)."""
         terms = self.terms(q, v, t)

@@ -273,38 +273,14 @@ class TabulatedDynamics:
         return full[:, 0], full[:, 1:], out[:, 0, m], out[:, 1:, m]
 
     def _exact_parts(self, q: Tensor) -> Tensor:
-        """The table's layout (B, 1 + d, c) from the exact pullback. With the flat kinetic energy all of it comes
-        from one second-order jet, ∂M̃_ij/∂q̃_k = Σ_n w_n ω0_n (H_nik·J_nj + J_ni·H_njk); a modal kinetic energy
-        takes ∂M̃/∂q̃ by forward-mode differentiation of M̃."""
-        exact = self.exact
-        if exact.modal is not None:
-            return self._exact_parts_jvp(q)
+        """The table's layout (B, 1 + d, c) from the exact pullback (its values and ∂M̃/∂q̃ from
+        :meth:`ReducedDynamics.static_terms_with_mass_slope`)."""
         with torch.no_grad():
-            jet = exact._jet(q, order=2)
-            mass, potential, gravity = exact._mass(jet), exact.potential_fn(jet.value, jet.G), exact._gravity(jet)
-            half = torch.einsum("n,bnaik,bnaj->bkij", exact.density_weights.to(jet.J), jet.H, jet.J)
-            dmass = half + half.transpose(-1, -2)  # (B, k, d, d)
+            mass, potential, gravity, slope = self.exact.static_terms_with_mass_slope(q)
         a, b = zip(*self.pairs)
         value = torch.cat([mass[:, a, b], potential[:, None]], -1)
-        rows = torch.cat([dmass[:, :, a, b], gravity[:, :, None]], -1)  # (B, d, m + 1)
+        rows = torch.cat([slope[:, :, a, b], gravity[:, :, None]], -1)  # (B, d, m + 1)
         return torch.cat([value[:, None], rows], 1)
-
-    def _exact_parts_jvp(self, q: Tensor) -> Tensor:
-        from torch.func import jvp
-
-        m = len(self.pairs)
-        eye = torch.eye(self.d, dtype=q.dtype, device=q.device)
-
-        def mass_entries(x: Tensor) -> Tensor:
-            mass = self.exact.mass_matrix(x)
-            return torch.stack([mass[:, a, b] for a, b in self.pairs], -1)
-
-        with torch.enable_grad():
-            derivs = [jvp(mass_entries, (q,), (eye[k].expand_as(q),))[1] for k in range(self.d)]
-        exact = self._exact_channels(q, self.exact)
-        value = exact[:, : m + 1]
-        rows = [torch.cat([derivs[k], exact[:, m + 1 + k: m + 2 + k]], -1) for k in range(self.d)]
-        return torch.stack([value, *rows], 1)
 
     def _solve(self, mass: Tensor, rhs: Tensor) -> Tensor:
         """M̃⁻¹ rhs (B, d), NaN where M̃ is singular (a division for d = 1)."""
