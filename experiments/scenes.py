@@ -86,16 +86,16 @@ def evaluate(model: Any, split: Any, integrator: Any, states: np.ndarray | None 
 
 
 def experiment_integrator_order(scene: str, config_dir: Path | None) -> int:
-    """The order of the implicit midpoint rule that `python -m lnf.train +experiment=<scene>` rolls out with: the
-    experiment's ``integrator.order``, else conf/integrator/implicit_midpoint.yaml's (the checkpoint does not
-    record it). The double pendulum and the bump set 2, the elastic scenes 4."""
+    """The order of the implicit midpoint rule that `python -m lnf.train +experiment=<scene>` rolls out with, from
+    the config it composes (:meth:`studylib.Study.composed`; the checkpoint does not record it); for a scene with no
+    experiment of that name, conf/integrator/implicit_midpoint.yaml's. The double pendulum and the bump set 2, the
+    elastic scenes 4."""
     try:
-        order = OmegaConf.select(OmegaConf.load(studylib.experiment_file(scene, config_dir)), "integrator.order")
+        studylib.experiment_file(scene, config_dir)
     except FileNotFoundError:
-        order = None
-    if order is None:
-        order = OmegaConf.load(studylib.config_file("integrator/implicit_midpoint", config_dir)).get("order", 2)
-    return int(order)
+        return int(OmegaConf.load(studylib.config_file("integrator/implicit_midpoint", config_dir)).get("order", 2))
+    study = studylib.Study(name="scenes", scene=scene, mode="reduced", out=ROOT, threads=1, config_dir=config_dir)
+    return int(study.composed().integrator.get("order", 2))
 
 
 def pick(metrics: dict[str, float], *keys: str) -> dict[str, float]:
