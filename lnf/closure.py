@@ -32,13 +32,13 @@ def monomial_exponents(latent_dim: int, degree: int) -> Tensor:
     return torch.tensor(rows, dtype=torch.long)
 
 
-class ClosureLeftItsRange(RuntimeError):
-    """A rollout of the closed dynamics left the range of the codes the closure was fitted on (by more than its
-    ``guard_margin``): the polynomial extrapolates there (raised only while a guard is set, e.g. while choosing)."""
-
-
 class PotentialClosure(nn.Module):
     """ΔṼ(q̃) = Σ_p θ_p Π_i x_i^{E_pi}, x = (q̃ − center)/scale, for a d-dimensional code; all zeros until fitted.
+
+    The polynomial holds on the fitted box |x_i| ≤ 1 (the training codes lie in it); beyond it ΔṼ continues as its
+    first-order Taylor expansion from the nearest point of the box, so the closure's force stays continuous and
+    bounded there (a quartic would otherwise carry a rollout that reaches past the training codes away), and the
+    closed dynamics stay conservative: :meth:`gradient` is the exact gradient of :meth:`potential` everywhere.
 
     Args:
         latent_dim: d.
@@ -53,47 +53,54 @@ class PotentialClosure(nn.Module):
         self.register_buffer("center", torch.zeros(int(latent_dim)))
         self.register_buffer("scale", torch.ones(int(latent_dim)))
         self.register_buffer("coef", torch.zeros(len(self.exponents)))
-        #: None, or a margin (fraction of the fitted codes' span): codes beyond it raise ClosureLeftItsRange
-        self.guard_margin: Optional[float] = None
-        self._fitted_range: Optional[tuple[Tensor, Tensor]] = None
 
     @property
     def active(self) -> bool:
         return bool(self.coef.abs().sum() > 0)
 
-    def _scaled(self, q: Tensor) -> Tensor:
-        return (q - self.center.to(q)) / self.scale.to(q)
+    def _scaled(self, q: Tensor) -> tuple[Tensor, Tensor]:
+        """x = (q̃ − center)/scale (B, d) and its nearest point of the fitted box [−1, 1]^d."""
+        x = (q - self.center.to(q)) / self.scale.to(q)
+        return x, x.clamp(-1.0, 1.0)
+
+    def _derivatives(self, x: Tensor, orders: tuple[int, ...]) -> Tensor:
+        """∂^orders of every monomial in x (B, P), `orders` one derivative order (0, 1 or 2) per variable."""
+        E = self.exponents.to(x)
+        a = torch.tensor(orders, dtype=x.dtype, device=x.device)
+        factor = torch.where(a == 0, torch.ones_like(E), torch.where(a == 1, E, E * (E - 1))).prod(-1)  # (P,)
+        return (x[:, None, :] ** (E - a).clamp_min(0)).prod(-1) * factor
+
+    def _unit(self, i: int, j: Optional[int] = None) -> tuple[int, ...]:
+        d = len(self.center)
+        return tuple(int(k == i) + int(k == j) for k in range(d))
 
     def potential(self, q: Tensor) -> Tensor:
         """ΔṼ (B,) at codes (B, d)."""
-        x = self._scaled(q)
-        return (x[:, None, :] ** self.exponents.to(x)).prod(-1) @ self.coef.to(x)
+        x, inside = self._scaled(q)
+        coef = self.coef.to(x)
+        value = self._derivatives(inside, (0,) * x.shape[1]) @ coef
+        for i in range(x.shape[1]):  # the first-order continuation beyond the box (zero inside it)
+            value = value + (self._derivatives(inside, self._unit(i)) @ coef) * (x[:, i] - inside[:, i])
+        return value
 
     def basis_gradients(self, q: Tensor) -> Tensor:
-        """∂(monomial p)/∂q̃_i (B, d, P) at codes (B, d)."""
-        x = self._scaled(q)
-        E = self.exponents.to(x)
-        powers = x[:, None, :] ** E  # (B, P, d)
-        lower = E * x[:, None, :] ** (E - 1).clamp_min(0)  # d/dx_i of x_i^{E_pi}
-        cols = []
-        for i in range(x.shape[1]):
-            others = torch.cat([powers[..., :i], powers[..., i + 1:]], -1).prod(-1)
-            cols.append(lower[..., i] * others / self.scale[i].to(x))
-        return torch.stack(cols, 1)
+        """∂(monomial p)/∂q̃_i (B, d, P) at codes (B, d) inside the fitted box (what the fit solves with)."""
+        x, _ = self._scaled(q)
+        return torch.stack([self._derivatives(x, self._unit(i)) / self.scale[i].to(x) for i in range(x.shape[1])], 1)
 
     def gradient(self, q: Tensor) -> Tensor:
-        """∇ΔṼ (B, d) at codes (B, d)."""
-        self._check_range(q)
-        return self.basis_gradients(q) @ self.coef.to(q)
-
-    def _check_range(self, q: Tensor) -> None:
-        if self.guard_margin is None or self._fitted_range is None:
-            return
-        low, high = (b.to(q) for b in self._fitted_range)
-        pad = self.guard_margin * (high - low)
-        if bool(((q < low - pad) | (q > high + pad)).any()):
-            raise ClosureLeftItsRange(f"codes left the closure's fitted range {low.tolist()}..{high.tolist()} by more "
-                                      f"than {self.guard_margin:g} of its span")
+        """∇ΔṼ (B, d) at codes (B, d), the continuation's beyond the box: the polynomial's gradient at the nearest
+        point of the box, plus, along each variable still inside it, the change of that gradient across the gap."""
+        x, inside = self._scaled(q)
+        coef, gap = self.coef.to(x), x - inside
+        cols = []
+        for i in range(x.shape[1]):
+            col = self._derivatives(inside, self._unit(i)) @ coef
+            for j in range(x.shape[1]):
+                if j != i:  # gap_i = 0 where variable i is free; ∂²/∂x_i∂x_j × gap_j there (zero inside the box)
+                    col = col + (self._derivatives(inside, self._unit(i, j)) @ coef) * gap[:, j] * (gap[:, i] == 0)
+            cols.append(col / self.scale[i].to(x))
+        return torch.stack(cols, 1)
 
     def fit(self, codes: Tensor, residual: Tensor, regularizer: float) -> float:
         """Fit ∇ΔṼ(q̃) ≈ −r by ridge least squares (λ × the mean diagonal of the normal matrix); codes and residuals
@@ -102,7 +109,6 @@ class PotentialClosure(nn.Module):
         q, r = codes.detach().double().reshape(-1, codes.shape[-1]), residual.detach().double().reshape(-1, codes.shape[-1])
         self.center.copy_(q.mean(0))
         self.scale.copy_((q - q.mean(0)).abs().amax(0).clamp_min(1e-6))
-        self._fitted_range = (q.amin(0), q.amax(0))
         A = self.basis_gradients(q).reshape(-1, len(self.coef))  # rows (b, i), columns p
         y = -r.reshape(-1)
         normal = A.T @ A
@@ -131,7 +137,7 @@ class ClosedDynamics:
         setattr(self.base, name, value)
 
     def acceleration(self, q: Tensor, v: Tensor, t: float = 0.0) -> Tensor:
-        extra = self.closure.gradient(q)  # first: it raises where a guard is set and q̃ left the fitted range
+        extra = self.closure.gradient(q)
         return self.base.acceleration(q, v, t, extra_force=-extra)  # with the base's own M̃ (no second jet)
 
     def hamiltonian_derivatives(self, q: Tensor, p: Tensor, t: float = 0.0) -> tuple[Tensor, Tensor]:

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from helpers import ROOT, TINY, run_cli
-from lnf.closure import ClosedDynamics, ClosureLeftItsRange, PotentialClosure, equation_residual, monomial_exponents
+from lnf.closure import ClosedDynamics, PotentialClosure, equation_residual, monomial_exponents
 from lnf.integrators import get_integrator
 from test_dynamics import _nonlinear_setup, _pendulum_dynamics
 
@@ -24,7 +24,7 @@ def test_the_gradient_is_the_potentials_and_a_polynomial_residual_is_fitted_exac
     torch.manual_seed(0)
     truth = PotentialClosure(2, 4).double()
     truth.center.copy_(torch.tensor([0.3, -0.2]))
-    truth.scale.copy_(torch.tensor([0.5, 2.0]))
+    truth.scale.copy_(torch.tensor([4.5, 5.0]))  # every code inside its box: the polynomial itself
     truth.coef.copy_(torch.randn(len(truth.coef)))
     q = torch.randn(200, 2, dtype=torch.float64, requires_grad=True)
     auto = torch.autograd.grad(truth.potential(q).sum(), q)[0]
@@ -37,27 +37,29 @@ def test_the_gradient_is_the_potentials_and_a_polynomial_residual_is_fitted_exac
     assert not fitted.active and fitted.potential(q).abs().max() == 0
 
 
-def test_while_a_guard_is_set_codes_beyond_the_fitted_range_raise_before_the_base_is_evaluated():
-    """The closure's choice rejects a candidate that carries a rollout off the training codes (its polynomial
-    extrapolates, and a tabulated base would fall back to the exact pullback at every step)."""
-    closure = PotentialClosure(1, 3).double()
-    closure.fit(torch.linspace(-1.0, 1.0, 50)[:, None].double(), torch.randn(50, 1).double(), 1e-8)
-
-    class Base:
-        calls = 0
-
-        def hamiltonian_derivatives(self, q, p, t=0.0):
-            Base.calls += 1
-            return p, -q
-
-    closed = ClosedDynamics(Base(), closure)
-    far = torch.tensor([[1.6]], dtype=torch.float64)
-    closed.hamiltonian_derivatives(far, far)  # no guard: anywhere
-    closure.guard_margin = 0.25
-    closed.hamiltonian_derivatives(torch.tensor([[1.4]], dtype=torch.float64), far)  # within 1 + 0.25 × 2
-    with pytest.raises(ClosureLeftItsRange, match=r"left the closure's fitted range \[-1.0\]..\[1.0\] by more than 0.25"):
-        closed.hamiltonian_derivatives(far, far)
-    assert Base.calls == 2
+def test_beyond_the_fitted_box_the_closure_continues_linearly_and_stays_a_gradient():
+    """Past the codes it was fitted on, a quartic would carry a rollout away; the closure continues as its first-order
+    expansion from the nearest point of the box (a bounded force, continuous across the box's faces), and its force
+    is still the exact gradient of its potential there (the closed dynamics stay conservative)."""
+    torch.manual_seed(1)
+    for d in (1, 2, 3):
+        closure = PotentialClosure(d, 4).double()
+        closure.center.copy_(torch.linspace(-0.2, 0.3, d))
+        closure.scale.copy_(torch.linspace(0.5, 1.5, d))
+        closure.coef.copy_(torch.randn(len(closure.coef)))
+        q = (closure.center + 3.0 * closure.scale * torch.randn(400, d, dtype=torch.float64)).requires_grad_(True)
+        auto = torch.autograd.grad(closure.potential(q).sum(), q)[0]
+        torch.testing.assert_close(closure.gradient(q), auto)
+        x = (q.detach() - closure.center) / closure.scale
+        inside = (x.abs() <= 1).all(-1)
+        assert 0 < int(inside.sum()) < len(q)  # both kinds of points
+        poly = (x[:, None, :] ** closure.exponents).prod(-1) @ closure.coef  # the polynomial itself
+        torch.testing.assert_close(closure.potential(q)[inside], poly[inside])
+    edge = PotentialClosure(1, 4).double()
+    edge.coef.copy_(torch.tensor([0.0, 1.0, 0.0, -3.0]))  # x² − 3x⁴: runs away past |x| = 1
+    far = torch.tensor([[1.0], [2.0], [10.0]], dtype=torch.float64)
+    torch.testing.assert_close(edge.gradient(far), torch.full((3, 1), 2.0 - 12.0, dtype=torch.float64))
+    torch.testing.assert_close(edge.potential(far), torch.tensor([-2.0, -12.0, -92.0], dtype=torch.float64))
 
 
 def test_the_closed_pendulum_conserves_its_closed_energy_and_adds_the_closure_force(pendulum):
@@ -104,11 +106,12 @@ def test_the_residual_of_the_models_own_motion_vanishes_and_another_motions_is_f
     assert residual.abs().max() < 1e-5 * forces  # the stencil's error, (ω dt)⁴/30 of an acceleration
     truth = PotentialClosure(1, 2).double()  # a stiffer spring: motion of base + ΔṼ, explained by ΔṼ
     truth.coef.copy_(torch.tensor([0.0, 3.0]))
+    truth.scale.fill_(2.0)  # a polynomial on the box |q̃| ≤ 2 the motion stays in
     other = get_integrator("rk4").integrate(ClosedDynamics(base, truth), q0, torch.zeros_like(q0), dt, 200)
     codes, residual = equation_residual(base, other.q, other.v, dt)
     fitted = PotentialClosure(1, 4).double()
     assert fitted.fit(codes, residual, 1e-10) < 1e-4
-    grid = torch.linspace(-0.8, 1.1, 7, dtype=torch.float64)[:, None]
+    grid = torch.linspace(-0.8, 1.05, 7, dtype=torch.float64)[:, None]  # inside the codes it was fitted on
     torch.testing.assert_close(fitted.gradient(grid), truth.gradient(grid), rtol=1e-3, atol=1e-4)
 
 
@@ -175,11 +178,13 @@ def test_shooting_recovers_the_closure_whose_motion_the_codes_follow_from_a_wron
     base = _pendulum_dynamics(pendulum)
     truth = PotentialClosure(1, 2).double()  # ΔṼ = 3 q²: a stiffer spring than the pullback's
     truth.coef.copy_(torch.tensor([0.0, 3.0]))
+    truth.scale.fill_(2.0)  # a polynomial on the box |q̃| ≤ 2 the motion stays in
     q0 = torch.tensor([[0.5], [-0.8], [1.1]], dtype=torch.float64)
     dt = 0.02
     motion = get_integrator("rk4").integrate(ClosedDynamics(base, truth), q0, torch.zeros_like(q0), dt, 150)
     for first in ([0.2, 2.0], [0.0, 0.0]):  # a third too soft and off-centre, or no closure: the phase drifts
         fitted = PotentialClosure(1, 2).double()
+        fitted.scale.fill_(2.0)
         fitted.coef.copy_(torch.tensor(first))
         start, end = shoot_closure(_ClosedModel(base, fitted), motion.q, motion.v, dt, None, "rk4")
         assert end < 1e-3 * start

@@ -235,6 +235,33 @@ def test_automatic_substeps_rise_where_a_rollout_turns_stiff_and_retake_that_ste
     assert bool(traj.q.abs().max() <= 1.0 + 1e-6)
     fixed = RK4(substeps=10, max_substeps=1).integrate(_Stiffening(), q0, v0, 0.05, 60)
     assert torch.equal(traj.q, fixed.q)
+class _Walled:
+    """q̈ = −k(q) q on a table's box [−2, 2]: ω = 2 rad/s near the start, 60 rad/s past |q| = 1.2 (a pulled-back
+    potential that stiffens into a wall past the training codes)."""
+
+    low, high = [-2.0], [2.0]
+
+    def acceleration(self, q, v, t=0.0):
+        return -(4.0 + 3596.0 * torch.sigmoid((q.abs() - 1.2) * 40.0)) * q
+
+
+def test_the_first_substeps_resolve_the_stiffest_part_of_a_tables_box_not_only_the_start():
+    """A rollout that starts where the potential is soft may swing into its wall: the substeps read at the start
+    cover the stiffest frequency on the box (a grid of it), where the dynamics are tabulated on one."""
+    q0, v0 = torch.full((3, 1), 0.3, dtype=torch.float64), torch.zeros(3, 1, dtype=torch.float64)
+    walled = _Walled()
+    traj = RK4().integrate(walled, q0, v0, 0.1, 10)
+    x = torch.linspace(-2.0, 2.0, 4001, dtype=torch.float64)[:, None].requires_grad_(True)
+    slope = torch.autograd.grad(walled.acceleration(x, None).sum(), x)[0]  # ∂q̈/∂q, −ω² (60 rad/s and the wall's rise)
+    need = math.ceil(0.1 * float(slope.abs().max().sqrt()) / RK4.stiff_step)
+    assert need >= 3 and traj.extra["substeps"]["initial"] in (need - 1, need)  # read on a coarser grid of the box
+
+    class Untabulated:  # no box: the frequency at the start (2 rad/s) decides
+        acceleration = walled.acceleration
+
+    assert "substeps" not in RK4().integrate(Untabulated(), q0, v0, 0.1, 10).extra
+
+
 def test_an_integrator_config_builds_the_class_it_names():
     """conf/integrator/*.yaml give a `_target_`: the class is built from it (not a name guessed from it)."""
     integ = get_integrator({"_target_": "lnf.integrators.ImplicitMidpoint", "order": 2, "substeps": 3})

@@ -84,6 +84,34 @@ def fastest_frequency(dynamics: Dynamics, q: Tensor, v: Tensor, t: float = 0.0) 
     return stiffness_eigenvalues(dynamics, q, v, t).abs().amax(-1).sqrt()
 
 
+#: the most codes :func:`box_frequency` reads the stiffness at (a grid over a table's box)
+BOX_FREQUENCY_POINTS = 4096
+
+
+def box_frequency(dynamics: Dynamics, q: Tensor, v: Tensor, t: float = 0.0) -> float:
+    """ω_max [rad/s] over a grid of the box of codes the dynamics are tabulated on (``dynamics.low``/``high``,
+    :class:`lnf.tabulated.TabulatedDynamics`; 0 for dynamics without one), at rest, read in batches the shape of
+    the rollout's states (q, v) (B, d) (a forced scene's loads have that shape). A rollout may swing into any part of
+    the box, and a pulled-back potential can stiffen there many times over (a wall past the training codes); the
+    step must resolve the stiffest part it can reach, not the part it starts in."""
+    low, high = getattr(dynamics, "low", None), getattr(dynamics, "high", None)
+    if low is None or high is None:
+        return 0.0
+    d = len(low)
+    per_axis = max(2, min(129, int(round(BOX_FREQUENCY_POINTS ** (1.0 / d)))))
+    axes = [torch.linspace(float(a), float(b), per_axis, dtype=q.dtype, device=q.device) for a, b in zip(low, high)]
+    grid = torch.cartesian_prod(*axes).reshape(-1, d)
+    B = q.shape[0]
+    omega = 0.0
+    for start in range(0, len(grid), B):
+        rows = grid[start:start + B]
+        if len(rows) < B:  # the last batch padded with its own first code
+            rows = torch.cat([rows, rows[:1].expand(B - len(rows), d)])
+        w = fastest_frequency(dynamics, rows, torch.zeros_like(v), t)
+        omega = max(omega, float(torch.nan_to_num(w, nan=0.0).max()))
+    return omega
+
+
 def divergence_diagnosis(dynamics: Dynamics, q: Tensor, v: Tensor, h: float, t: float, integrator: str,
                          substeps: int = 1, limit: Optional[float] = None, max_substeps: Optional[int] = None) -> str:
     """Why trajectories diverged on the way, read at their last finite state (q, v) (B, d) with steps of `h` [s]
@@ -183,6 +211,8 @@ class Integrator:
         try:
             omega = fastest_frequency(dynamics, q, v, t)
             omega = float(torch.nan_to_num(omega if rows is None else omega[rows], nan=0.0).max())
+            if rows is None:  # the start of a rollout: also the stiffest part of a table's box it may reach
+                omega = max(omega, box_frequency(dynamics, q, v, t))
         except Exception:  # noqa: BLE001 - no frequency, no automatic substeps: the rollout reports what happens
             return at_least
         need = math.ceil(abs(dt) * omega / self.stiff_step * (1 - 1e-6))  # ω from finite differences: ~1e-8 off
