@@ -22,6 +22,7 @@ from lnf.decoding_table import check_decoding
 from lnf.error_budget import read_error_budget
 from lnf.evaluation import RolloutEvaluation, evaluate_rollouts, long_horizon_energy
 from lnf.integrators import get_integrator
+from lnf.quadrature import grid_shape_of
 from lnf.reduced_model import ReducedModel
 from lnf.tempfiles import write_json_atomic
 from lnf.utils import EVALUATION_RULES, require
@@ -89,8 +90,14 @@ class EvaluationData:
     def of_split(cls, split: Any, scene: Any, n: Optional[int] = None, stride: int = 1,
                  grid_shape: Optional[tuple[int, ...]] = None, subset: Optional[np.ndarray] = None) -> "EvaluationData":
         """The first `n` stored trajectories of `split` (all by default), every `stride`-th sample, on its fine points
-        (or the indices `subset` of them), with what the split stores beside its fields."""
+        (or the indices `subset` of them), with what the split stores beside its fields. `grid_shape` None: the
+        fine points' own grid where they are one (:func:`lnf.quadrature.grid_shape_of`), so that ρ̃ of the true
+        initial fields reads the same evenly strided sub-grid whoever evaluates (a flat stride through a 64² grid
+        keeps every 4th column: the double pendulum's test error was 0.0805 through it, 0.0623 through the 32²
+        sub-grid)."""
         n = len(split) if n is None else min(int(n), len(split))
+        if grid_shape is None and subset is None:
+            grid_shape = grid_shape_of(split.fine_points, scene.bounds)
 
         def frames(a: np.ndarray) -> np.ndarray:
             a = a[:n, ::stride]

@@ -13,7 +13,7 @@ from lnf.evaluation import reduction_subset
 from lnf.evaluation_pipeline import (EvaluationData, EvaluationReport, EvaluationSpec, evaluate_model,
                                      write_report)
 from lnf.integrators import Integrator, get_integrator
-from lnf.quadrature import grid_shape_of, midpoint_grid
+from lnf.quadrature import midpoint_grid
 from lnf.utils import require
 
 log = logging.getLogger("lnf.evaluation")
@@ -102,8 +102,7 @@ class RolloutEvaluationCallback(pl.Callback):
     def on_test_epoch_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
         model = pl_module.model
         split = trainer.datamodule.split("test")
-        data = EvaluationData.of_split(split, model.scene, grid_shape=grid_shape_of(split.fine_points,
-                                                                                    model.scene.bounds))
+        data = EvaluationData.of_split(split, model.scene)  # on the fine points' grid (of_split finds it)
         with torch.inference_mode(False), torch.no_grad():
             self.report = evaluate_model(model, data, self.spec)
         for key, value in self.report.metrics.items():  # equal on every rank (each evaluates the whole split)
