@@ -32,6 +32,12 @@ def monomial_exponents(latent_dim: int, degree: int) -> Tensor:
     return torch.tensor(rows, dtype=torch.long)
 
 
+class ClosureLeftItsRange(RuntimeError):
+    """A rollout of the closed dynamics left the range of the codes the closure was fitted on by more than its
+    ``guard_margin`` (raised only while a guard is set: while the closure is refined by shooting, whose search
+    would otherwise pay for rollouts that crawl off the codes, e.g. stiff implicit solves of the exact pullback)."""
+
+
 class PotentialClosure(nn.Module):
     """ΔṼ(q̃) = Σ_p θ_p Π_i x_i^{E_pi}, x = (q̃ − center)/scale, for a d-dimensional code; all zeros until fitted.
 
@@ -53,6 +59,9 @@ class PotentialClosure(nn.Module):
         self.register_buffer("center", torch.zeros(int(latent_dim)))
         self.register_buffer("scale", torch.ones(int(latent_dim)))
         self.register_buffer("coef", torch.zeros(len(self.exponents)))
+        #: None, or a margin (fraction of the fitted codes' span): codes beyond it raise ClosureLeftItsRange
+        self.guard_margin: Optional[float] = None
+        self._fitted_range: Optional[tuple[Tensor, Tensor]] = None
 
     @property
     def active(self) -> bool:
@@ -91,6 +100,7 @@ class PotentialClosure(nn.Module):
     def gradient(self, q: Tensor) -> Tensor:
         """∇ΔṼ (B, d) at codes (B, d), the continuation's beyond the box: the polynomial's gradient at the nearest
         point of the box, plus, along each variable still inside it, the change of that gradient across the gap."""
+        self._check_range(q)
         x, inside = self._scaled(q)
         coef, gap = self.coef.to(x), x - inside
         cols = []
@@ -102,6 +112,15 @@ class PotentialClosure(nn.Module):
             cols.append(col / self.scale[i].to(x))
         return torch.stack(cols, 1)
 
+    def _check_range(self, q: Tensor) -> None:
+        if self.guard_margin is None or self._fitted_range is None:
+            return
+        low, high = (b.to(q) for b in self._fitted_range)
+        pad = self.guard_margin * (high - low)
+        if bool(((q < low - pad) | (q > high + pad)).any()):
+            raise ClosureLeftItsRange(f"codes left the closure's fitted range {low.tolist()}..{high.tolist()} by more "
+                                      f"than {self.guard_margin:g} of its span")
+
     def fit(self, codes: Tensor, residual: Tensor, regularizer: float) -> float:
         """Fit ∇ΔṼ(q̃) ≈ −r by ridge least squares (λ × the mean diagonal of the normal matrix); codes and residuals
         (B, d). Sets center and scale from the codes (their mean and largest deviation). Returns the relative misfit
@@ -109,6 +128,7 @@ class PotentialClosure(nn.Module):
         q, r = codes.detach().double().reshape(-1, codes.shape[-1]), residual.detach().double().reshape(-1, codes.shape[-1])
         self.center.copy_(q.mean(0))
         self.scale.copy_((q - q.mean(0)).abs().amax(0).clamp_min(1e-6))
+        self._fitted_range = (q.amin(0), q.amax(0))
         A = self.basis_gradients(q).reshape(-1, len(self.coef))  # rows (b, i), columns p
         y = -r.reshape(-1)
         normal = A.T @ A

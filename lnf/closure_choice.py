@@ -16,7 +16,7 @@ import torch
 from scipy.optimize import least_squares
 
 from lnf.baselines.latent_mlp import latent_trajectories
-from lnf.closure import ClosedDynamics, equation_residual
+from lnf.closure import ClosedDynamics, ClosureLeftItsRange, equation_residual
 from lnf.evaluation_pipeline import EvaluationData, evaluate_model
 
 log = logging.getLogger("lnf.closure")
@@ -29,6 +29,8 @@ CLOSURE_VAL_TRAJECTORIES = 8
 #: milliseconds; the exact pullback's, a jet per step: fewer), and its evaluations per term
 SHOOTING_TRAJECTORIES, SHOOTING_TRAJECTORIES_EXACT = 16, 4
 SHOOTING_EVALUATIONS_PER_TERM = 20
+#: a shooting trial whose rollout leaves the training codes by more than this fraction of their span ends there
+SHOOTING_GUARD_MARGIN = 1.0
 
 
 def fit_closure(model: Any, datamodule: Any, spec: Any) -> dict[str, float]:
@@ -108,8 +110,8 @@ def shoot_closure(model: Any, codes: torch.Tensor, velocities: torch.Tensor, dt:
     over the training window, in units of the codes' spread, on :data:`SHOOTING_TRAJECTORIES` evenly spaced
     trajectories (:data:`SHOOTING_TRAJECTORIES_EXACT` where the dynamics are not a table), under the evaluation's
     `integrator`. A residual fit matches the equations sample by sample; this matches their solutions, so the phase
-    after many periods. A rollout that diverges
-    counts as a gap of 10 spreads per sample. Returns the RMS gap (start, end)."""
+    after many periods. A rollout that diverges or leaves the training codes by more than
+    :data:`SHOOTING_GUARD_MARGIN` of their span counts as a gap of 10 spreads per sample. Returns the RMS gap (start, end)."""
     closure = model.closure
     # the closed dynamics (the model's table where it has one), reading the coefficients as they change:
     # model.dynamics() leaves a zero closure out
@@ -127,16 +129,25 @@ def shoot_closure(model: Any, codes: torch.Tensor, velocities: torch.Tensor, dt:
 
     def gap(theta: np.ndarray) -> np.ndarray:
         closure.coef.copy_(torch.as_tensor(theta * unit, dtype=closure.coef.dtype))
-        traj = model.rollout(q[:, 0], v[:, 0], dt=dt, steps=q.shape[1] - 1, integrator=integrator,
-                             on_divergence="mark", dynamics=dynamics, controls=forces)
+        try:
+            traj = model.rollout(q[:, 0], v[:, 0], dt=dt, steps=q.shape[1] - 1, integrator=integrator,
+                                 on_divergence="mark", dynamics=dynamics, controls=forces)
+        except ClosureLeftItsRange:
+            return np.full(q.numel(), 10.0)
         out = ((traj.q - q) / spread).double().cpu().numpy().ravel()
         return np.nan_to_num(out, nan=10.0, posinf=10.0, neginf=-10.0)
 
     theta0 = closure.coef.detach().double().cpu().numpy() / unit
-    start = float(np.sqrt(np.mean(gap(theta0) ** 2)))
-    sol = least_squares(gap, theta0, method="lm", x_scale="jac", diff_step=1e-3,
-                        max_nfev=SHOOTING_EVALUATIONS_PER_TERM * (len(theta0) + 1))
-    end = float(np.sqrt(np.mean(gap(sol.x) ** 2)))
+    # a trial whose rollout runs away from the training codes ends there, at a gap of 10 spreads: the search never
+    # pays for rollouts that crawl far off the codes (stiff implicit solves of the exact pullback, a table's fallback)
+    closure.guard_margin = SHOOTING_GUARD_MARGIN
+    try:
+        start = float(np.sqrt(np.mean(gap(theta0) ** 2)))
+        sol = least_squares(gap, theta0, method="lm", x_scale="jac", diff_step=1e-3,
+                            max_nfev=SHOOTING_EVALUATIONS_PER_TERM * (len(theta0) + 1))
+        end = float(np.sqrt(np.mean(gap(sol.x) ** 2)))
+    finally:
+        closure.guard_margin = None
     if not end < start:  # keep the start where the search found nothing better
         sol.x, end = theta0, start
     closure.coef.copy_(torch.as_tensor(sol.x * unit, dtype=closure.coef.dtype))

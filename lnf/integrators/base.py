@@ -85,29 +85,32 @@ def fastest_frequency(dynamics: Dynamics, q: Tensor, v: Tensor, t: float = 0.0) 
 
 
 #: the most codes :func:`box_frequency` reads the stiffness at (a grid over a table's box)
-BOX_FREQUENCY_POINTS = 4096
+BOX_FREQUENCY_POINTS = 1024
 
 
 def box_frequency(dynamics: Dynamics, q: Tensor, v: Tensor, t: float = 0.0) -> float:
     """ω_max [rad/s] over a grid of the box of codes the dynamics are tabulated on (``dynamics.low``/``high``,
-    :class:`lnf.tabulated.TabulatedDynamics`; 0 for dynamics without one), at rest, read in batches the shape of
-    the rollout's states (q, v) (B, d) (a forced scene's loads have that shape). A rollout may swing into any part of
-    the box, and a pulled-back potential can stiffen there many times over (a wall past the training codes); the
-    step must resolve the stiffest part it can reach, not the part it starts in."""
+    :class:`lnf.tabulated.TabulatedDynamics`; 0 for dynamics without one), at rest. A rollout may swing into any part
+    of the box, and a pulled-back potential can stiffen there many times over (a wall past the training codes); the
+    step must resolve the stiffest part it can reach, not the part it starts in. The grid is one batch; with a forced
+    scene's loads (``dynamics.controls``, one row per trajectory of the rollout's states (q, v) (B, d)) it is read
+    in batches of B."""
     low, high = getattr(dynamics, "low", None), getattr(dynamics, "high", None)
     if low is None or high is None:
         return 0.0
     d = len(low)
-    per_axis = max(2, min(129, int(round(BOX_FREQUENCY_POINTS ** (1.0 / d)))))
+    per_axis = max(2, min(129, int(BOX_FREQUENCY_POINTS ** (1.0 / d))))
     axes = [torch.linspace(float(a), float(b), per_axis, dtype=q.dtype, device=q.device) for a, b in zip(low, high)]
     grid = torch.cartesian_prod(*axes).reshape(-1, d)
-    B = q.shape[0]
+    if getattr(dynamics, "controls", None) is None:
+        batches = [grid]
+    else:  # the loads have the rollout's batch shape: the last batch padded with its own first code
+        B = q.shape[0]
+        batches = [torch.cat([grid[i:i + B], grid[i:i + 1].expand(max(0, i + B - len(grid)), d)])
+                   for i in range(0, len(grid), B)]
     omega = 0.0
-    for start in range(0, len(grid), B):
-        rows = grid[start:start + B]
-        if len(rows) < B:  # the last batch padded with its own first code
-            rows = torch.cat([rows, rows[:1].expand(B - len(rows), d)])
-        w = fastest_frequency(dynamics, rows, torch.zeros_like(v), t)
+    for rows in batches:
+        w = fastest_frequency(dynamics, rows, torch.zeros_like(rows), t)
         omega = max(omega, float(torch.nan_to_num(w, nan=0.0).max()))
     return omega
 
