@@ -15,8 +15,8 @@ multiruns of `python -m lnf.evaluate`:
   at rest, and one rotating pendulum above the separatrix (θ0 = 0, θ̇0 = 7 rad/s); both links of the double
   pendulum at θ0, the bump's pendulum as the pendulum's, the cantilever released at rest from tip deflections
   0.15 m (edge of the training range) … 0.4 m;
-- large time steps: dt = 0.05 … 0.8 s until each method and integrator fails (a trajectory diverges, or
-  its error exceeds max(2 × its own dt = 0.05 error, 0.05));
+- large time steps: dt = 0.05 … 0.8 s (over 4.8 s of the 5 s data, a whole number of each) until each method and
+  integrator fails (a trajectory diverges, or its error exceeds max(2 × its own dt = 0.05 error, 0.05));
 - resolution transfer: trained on 25 % of 32×32, evaluated on 16², 64², 128² and 4096 random points (a 3-D
   body on 8³, 16³, 32³).
 
@@ -26,6 +26,7 @@ summary.md into outputs/studies/stability/.
 """
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Optional, Sequence
 
@@ -43,6 +44,16 @@ PARTS = ("long", "high_energy", "dt", "resolution")  # the study's questions, as
 
 
 INLINE_STATE_SIZE = 8  # larger full-order states (the elastic mesh) go to lnf.evaluate as .npy files
+
+
+def dt_sweep_horizon(study: Any, dts: str) -> str:
+    """The horizon [s] of the large-step sweep: the data's (n_times × dt), cut to a whole number of the largest step
+    (0.05 … 0.8 s steps doubling: then a whole number of each), so that lnf.evaluate rolls every step out over the
+    same window (5 s data: 4.8 s)."""
+    data = study.composed().data
+    largest = max(float(x) for x in dts.split(","))
+    horizon = float(data.n_times) * float(data.dt)
+    return f"{math.floor(horizon / largest + 1e-9) * largest:.6g}"
 
 
 def stress_cases(study: S.Study) -> Optional[StabilityCases]:
@@ -138,8 +149,9 @@ def evaluations(study: S.Study, ckpts: dict[str, Path], parts: Sequence[str] = P
         # large time steps
         dts = "0.05,0.2" if smoke else "0.05,0.1,0.2,0.4,0.8"
         if "dt" in parts:
-            study.multirun(f"dt_{integ}", [*common, f"dt={dts}", f"max_trajectories={2 if smoke else 8}"],
-                           "lnf.evaluate", {**lab, "study": "dt"})
+            study.multirun(f"dt_{integ}", [*common, f"dt={dts}", f"horizon={dt_sweep_horizon(study, dts)}",
+                                           f"max_trajectories={2 if smoke else 8}"], "lnf.evaluate",
+                           {**lab, "study": "dt"})
         # resolution transfer, with each method's first integrator
         own = ",".join(str(ckpts[m]) for m in ckpts if INTEGRATORS[m][0] == integ)
         if own and "resolution" in parts:
