@@ -97,6 +97,33 @@ FEM_SCENE_MEASUREMENTS = (
     ("all measurements [s]", "seconds"),
 )
 
+# experiments/scenes.py's results.json of a conservative scene with a black box (black_box) and POD-Galerkin (modes)
+BLACK_BOX_MEASUREMENTS = (
+    ("`vpt/median` [s]: ours · black box", "ours/vpt/median|black_box/vpt/median"),
+    ("`field_rel_l2` all · in horizon (median): ours", "ours/field_rel_l2/all/median|ours/field_rel_l2/in_horizon/median"),
+    ("`field_rel_l2` all · in horizon (median): black box",
+     "black_box/field_rel_l2/all/median|black_box/field_rel_l2/in_horizon/median"),
+    ("energy drift over 20× the horizon, median: ours · black box · ratio",
+     "ours/energy_drift_long/median|black_box/energy_drift_long/median|drift_ratio_median"),
+    ("the same, max: ours · black box", "ours/energy_drift_long/max|black_box/energy_drift_long/max"),
+)
+MODES_MEASUREMENTS = (
+    ("POD-Galerkin modes to match ours · the best linear projection's", "pod_modes_to_match_ours|oracle_modes_to_match_ours"),
+)
+# experiments/scenes.py's results.json of a forced scene (loads, decay)
+LOADS_MEASUREMENTS = (
+    ("test loads: `field_rel_l2` in horizon · all · after (median)", "test/field_rel_l2/in_horizon/median|"
+     "test/field_rel_l2/all/median|test/field_rel_l2/extrapolation/median"),
+    ("a load not in training (amplitude, frequency [Hz])", "unseen_load/controls"),
+    ("that load: `field_rel_l2` in horizon · all (median · max)", "unseen_load/field_rel_l2/in_horizon/median|"
+     "unseen_load/field_rel_l2/all/median|unseen_load/field_rel_l2/all/max"),
+    ("free decay: largest rise of the reduced energy between samples / E_scale",
+     "free_decay/largest_energy_rise_per_sample_over_scale"),
+    ("free decay: energy at the end over the start, ours · FEM (median)",
+     "free_decay/energy_ratio_end_over_start_ours_median|free_decay/energy_ratio_end_over_start_fem_median"),
+    ("all measurements [s]", "seconds"),
+)
+
 # python -m experiments.probe_settings --out probe.json: the embedding after a fixed number of steps
 PROBE_METRICS = (
     ("projection error, 32×32 (training grid)", "projection_rel_l2_32"),
@@ -153,6 +180,14 @@ SPECS: dict[str, Spec] = {
     "elastic_default": Spec("metrics", "python -m lnf.train +experiment=elastic", metrics=SCENE_METRICS),
     "elastic_scenes": Spec("metrics", "python -m experiments.scenes --scene elastic --measure speedup",
                            metrics=FEM_SCENE_MEASUREMENTS[:-1], file="results.json"),
+    "double_pendulum_default": Spec("metrics", "python -m lnf.train +experiment=double_pendulum", metrics=SCENE_METRICS),
+    "bump_default": Spec("metrics", "python -m lnf.train +experiment=bump", metrics=SCENE_METRICS),
+    "double_pendulum_scenes": Spec("metrics", "python -m experiments.scenes --scene double_pendulum",
+                                   metrics=BLACK_BOX_MEASUREMENTS + MODES_MEASUREMENTS, file="results.json"),
+    "bump_scenes": Spec("metrics", "python -m experiments.scenes --scene bump",
+                        metrics=BLACK_BOX_MEASUREMENTS + MODES_MEASUREMENTS, file="results.json"),
+    "elastic_actuated_scenes": Spec("metrics", "python -m experiments.scenes --scene elastic_actuated --measure loads decay "
+                                    "--unseen-load 0.5 1.2", metrics=LOADS_MEASUREMENTS, file="results.json"),
     "elastic_actuated_default": Spec("metrics", "python -m lnf.train +experiment=elastic_actuated",
                                      metrics=SCENE_METRICS),
     "soft_body_scenes": Spec("metrics", "python -m experiments.scenes --scene soft_body --measure speedup shape damped",
