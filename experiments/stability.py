@@ -117,6 +117,8 @@ def evaluations(study: S.Study, ckpts: dict[str, Path], parts: Sequence[str] = P
         print(f"[{study.name}] {skipped_high_energy(study)}", flush=True)
     expensive = scene.expensive_reference
     before = len(study.rows)
+    dts = "0.05,0.2" if smoke else "0.05,0.1,0.2,0.4,0.8"
+    dt_horizon = dt_sweep_horizon(study, dts) if "dt" in parts else None  # one composed config, both integrators
     for integ in ("implicit_midpoint", "rk4"):
         paths = ",".join(str(ckpts[m]) for m in ckpts if integ in INTEGRATORS[m])
         common = [f"ckpt_path={paths}", "figures=0", f"threads={study.threads}", f"integrator={integ}"]
@@ -147,9 +149,8 @@ def evaluations(study: S.Study, ckpts: dict[str, Path], parts: Sequence[str] = P
                 study.multirun(f"rotation_{integ}", [*common, "initial_states=[[" + ",".join(map(str, cases.rotation))
                                                      + "]]"], "lnf.evaluate", {**lab, "study": "rotation"})
         # large time steps
-        dts = "0.05,0.2" if smoke else "0.05,0.1,0.2,0.4,0.8"
         if "dt" in parts:
-            study.multirun(f"dt_{integ}", [*common, f"dt={dts}", f"horizon={dt_sweep_horizon(study, dts)}",
+            study.multirun(f"dt_{integ}", [*common, f"dt={dts}", f"horizon={dt_horizon}",
                                            f"max_trajectories={2 if smoke else 8}"], "lnf.evaluate",
                            {**lab, "study": "dt"})
         # resolution transfer, with each method's first integrator
