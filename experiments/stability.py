@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Optional, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Optional, Sequence
 
 import numpy as np
 
@@ -198,6 +198,23 @@ def _drift(row: dict) -> float:
     return float(row.get("energy_drift/max", row.get("energy_drift_long/max", np.nan)))
 
 
+def _energy_error(row: dict) -> float:
+    """A long-horizon row's energy error against the reference's energy (a damped or loaded scene, whose energy
+    changes by the forces' work: its drift is physics, not an error); NaN for a `long_steps` check, which has no
+    reference over its horizon (its energy_rel_err is the default test horizon's)."""
+    if row.get("energy_drift_long/max") not in (None, ""):
+        return np.nan
+    return float(row.get("energy_rel_err/max") or np.nan)
+
+
+def long_energy(study: S.Study) -> tuple[Callable[[dict], float], str]:
+    """What the long-horizon part reads of a row's energy, and that metric's key: the drift on a conservative
+    scene, the error against the reference's energy on a damped or loaded one."""
+    if study.scene_object().is_conservative:
+        return _drift, "energy_drift/max"
+    return _energy_error, "energy_rel_err/max"
+
+
 def _level(row: dict) -> float:
     return float(row.get("stress_level", np.nan))
 
@@ -274,7 +291,8 @@ def plot(study: S.Study, rows: list[dict], parts: Sequence[str] = PARTS) -> Path
     combos = [(m, i) for m in methods(study) for i in INTEGRATORS[m]]
     n = len(combos)
 
-    ax = axes[0, 0]  # long horizons: energy drift at 20× and 200× the training horizon
+    ax = axes[0, 0]  # long horizons: energy drift (a damped or loaded scene: energy error) at 20× and 200×
+    energy_of, energy_key = long_energy(study)
     factors = sorted({int(r["horizon_factor"]) for r in rows if r.get("study") == "long"}) or [20]
     n_long = max((int(float(r.get("max_trajectories", 4) or 4)) for r in rows if r.get("study") == "long"), default=4)
     for k, (m, integ) in enumerate(combos):
@@ -282,16 +300,16 @@ def plot(study: S.Study, rows: list[dict], parts: Sequence[str] = PARTS) -> Path
                      and int(r["horizon_factor"]) == f), None) for f in factors]
         if not any(sel):
             continue
-        drift = np.array([_drift(r) if r else np.nan for r in sel])
+        drift = np.array([energy_of(r) if r else np.nan for r in sel])
         failed = np.array([bool(r) and (float(r.get("diverged_fraction", 0)) > 0 or not np.isfinite(_drift(r)))
                            for r in sel])
         x = _dodge(np.arange(len(factors)), k, n, categorical=True)
-        have = np.array([r is not None for r in sel])
+        have = np.array([r is not None for r in sel]) & (np.isfinite(drift) | failed)  # no reference: no error
         S.plot_marking_failures(ax, x[have], drift[have], failed[have], **_combo_style(m, integ))
     ax.set_xticks(np.arange(len(factors)), [_horizon_text(rows, f) for f in factors])
     ax.set_xlim(-0.5, len(factors) - 0.5)
     ax.set_yscale("log")
-    ax.set_ylabel(S.metric_label("energy_drift/max", over=f"{n_long} trajectories", wrap=True))
+    ax.set_ylabel(S.metric_label(energy_key, over=f"{n_long} trajectories", wrap=True))
     ax.set_title("Long horizons", fontsize=10)
     if "long" not in parts:
         _say_not_run(ax, "long")
@@ -388,6 +406,10 @@ def summary(study: S.Study, rows: list[dict], parts: Sequence[str] = PARTS) -> P
             dts = pick("dt")
             table.append({
                 "method": S.LABELS[m], "integrator": SHORT[integ],
+                "err20": long20[0].get("field_rel_l2/all/median") if long20 else "",
+                "energy20": " / ".join(S.fmt(long20[0].get(f"energy_rel_err/{k}")) for k in ("median", "max"))
+                if long20 else "",
+                "levels": " / ".join(S.fmt(r["field_rel_l2/all/median"]) for r in energy),
                 "drift20": long20[0].get("energy_drift/max") if long20 else "",
                 "vpt20": long20[0].get("vpt/median") if long20 else "",
                 "drift200": _drift(long200[0]) if long200 else "",
@@ -407,10 +429,16 @@ def summary(study: S.Study, rows: list[dict], parts: Sequence[str] = PARTS) -> P
             row[key] = r["field_rel_l2/all/median"]
             grids += [key] if key not in grids else []
         res.append(row)
-    columns = [("method", "method"), ("integrator", "integrator"), ("drift20", "energy drift 20×"),
-               ("vpt20", "vpt 20× [s]"), ("drift200", "energy drift 200×"), ("vpt200", "vpt 200× [s]")]
-    if cases is not None:  # without release cases the high-energy columns would stay empty
-        columns += [("err_099", f"err at the highest level ({highest})"), ("err_rot", "err rotation")]
+    if study.scene_object().is_conservative:
+        columns = [("method", "method"), ("integrator", "integrator"), ("drift20", "energy drift 20×"),
+                   ("vpt20", "vpt 20× [s]"), ("drift200", "energy drift 200×"), ("vpt200", "vpt 200× [s]")]
+        if cases is not None:  # without release cases the high-energy columns would stay empty
+            columns += [("err_099", f"err at the highest level ({highest})"), ("err_rot", "err rotation")]
+    else:  # damped or loaded: the energy changes by the forces' work, so its error is against the reference's
+        columns = [("method", "method"), ("integrator", "integrator"), ("err20", "field error 20×"),
+                   ("vpt20", "vpt 20× [s]"), ("energy20", "energy error vs the reference 20×: median / max")]
+        if cases is not None:
+            columns += [("levels", f"err at {' / '.join(f'{v:g}' for v in levels)} ({cases.xlabel})")]
     skipped = "" if cases or "high_energy" not in parts else skipped_high_energy(study)
     only = "" if tuple(parts) == PARTS else f" --parts {' '.join(parts)}"
     left_out = [p for p in PARTS if p not in parts]
