@@ -202,9 +202,10 @@ def _energy_error(row: dict) -> float:
     """A long-horizon row's energy error against the reference's energy (a damped or loaded scene, whose energy
     changes by the forces' work: its drift is physics, not an error); NaN for a `long_steps` check, which has no
     reference over its horizon (its energy_rel_err is the default test horizon's)."""
-    if row.get("energy_drift_long/max") not in (None, ""):
+    value = row.get("energy_rel_err/max")
+    if row.get("energy_drift_long/max") not in (None, "") or value in (None, ""):
         return np.nan
-    return float(row.get("energy_rel_err/max") or np.nan)
+    return float(value)
 
 
 def long_energy(study: S.Study) -> tuple[Callable[[dict], float], str]:
