@@ -85,10 +85,6 @@ class HyperelasticMaterial(ABC):
     def first_piola(self, F: Tensor) -> Tensor:
         """P = ∂W/∂F [Pa] (…, d, d)."""
 
-    def energy_and_stress(self, F: Tensor) -> tuple[Tensor, Tensor]:
-        """(W, P) in one call (…), (…, d, d)."""
-        return self.energy_density(F), self.first_piola(F)
-
     def tangent(self, F: Tensor) -> Tensor:
         """A_ijkl = ∂P_ij/∂F_kl [Pa] (…, d, d, d, d), exact: one forward-mode derivative of :meth:`first_piola`
         per direction E_kl (d² batched calls)."""

@@ -344,10 +344,6 @@ class SnapshotDataModule(pl.LightningDataModule):
         return {"path": str(self.path), "on_mismatch": self.on_mismatch, "explicit_path": self.explicit_path,
                 **self.config.__dict__, **checksum}
 
-    def describe_observations(self) -> dict[str, Any]:
-        """How the training observations were corrupted (kept beside :meth:`describe` in checkpoints)."""
-        return {"noise": self.noise}
-
 
 def checkpoint_datamodule(model: Any, path: "str | Path") -> SnapshotDataModule:
     """The data module a checkpoint was trained with (its recorded data settings), on its dataset file at `path`
