@@ -178,6 +178,9 @@ SPECS: dict[str, Spec] = {
     )),
     "soft_body_default": Spec("metrics", "python -m lnf.train +experiment=soft_body", metrics=SCENE_METRICS),
     "elastic_default": Spec("metrics", "python -m lnf.train +experiment=elastic", metrics=SCENE_METRICS),
+    # the cantilever's default at another SIREN frequency, quoted beside elastic_default (docs/choices.md)
+    "elastic-w0-3": Spec("metrics", "python -m lnf.train +experiment=elastic model.w0=3", metrics=SCENE_METRICS),
+    "elastic-w0": Spec("cells", "python -m experiments.results_tables"),
     "elastic_scenes": Spec("metrics", "python -m experiments.scenes --scene elastic --measure speedup",
                            metrics=FEM_SCENE_MEASUREMENTS[:-1], file="results.json"),
     "double_pendulum_default": Spec("metrics", "python -m lnf.train +experiment=double_pendulum", metrics=SCENE_METRICS),
