@@ -36,7 +36,9 @@ def test_the_vibrating_string_passes_check_scene():
 def test_the_vibrating_string_trains_evaluates_draws_and_loads_from_its_own_config_dir(tmp_path):
     run = tmp_path / "run"
     cmd = [sys.executable, "-m", "lnf.train", "--config-dir", str(EXAMPLES / "conf"), "+experiment=vibrating_string",
-           "trainer=smoke", "trainer.max_epochs=2", "logger=csv", "threads=1", *SMOKE, f"hydra.run.dir={run}"]
+           "trainer=smoke", "trainer.max_epochs=2", "logger=csv", "threads=1", *SMOKE,
+           # checks test metrics, the figure and loading: no validation rollouts or long-horizon check
+           "evaluation.every_n_epochs=0", "evaluation.long_steps=0", f"hydra.run.dir={run}"]
     proc = subprocess.run(cmd, cwd=ROOT, env=_env(tmp_path), capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-3000:]
     metrics = json.loads((run / "metrics.json").read_text())

@@ -473,7 +473,8 @@ def test_scenes_script_measures_a_tiny_double_pendulum_checkpoint(tmp_path):
     data = ["data.n_train=3", "data.n_val=1", "data.n_test=2", "data.n_times=20", "data.train_times=10",
             "data.fine_resolution=12", "data.coarse_resolution=8", "model.width=16", "model.hyper_width=8",
             "quadrature.order=4", "evaluation.long_steps=10", "evaluation.long_trajectories=1",
-            "evaluation.max_reduction_points=64", f"paths.data_dir={tmp_path / 'data'}"]
+            "evaluation.max_reduction_points=64", f"paths.data_dir={tmp_path / 'data'}",
+            "evaluation.figures=0"]  # the script's figures are checked, not the run's
     _run(["-m", "lnf.train", "+experiment=double_pendulum", "trainer=smoke", "logger=csv", *data,
           f"hydra.run.dir={run}"], png_only=True)
     _run(["-m", "experiments.scenes", "--scene", "double_pendulum", "--ckpt", str(run / "checkpoints" / "last.ckpt"),
@@ -528,6 +529,7 @@ def test_scenes_script_measures_a_tiny_elastic_checkpoint(scene, tmp_path):
           "data.fine_resolution=8", "data.coarse_resolution=8", "model.width=16", "model.hyper_width=8",
           "quadrature.order=[4,3]", "evaluation.long_steps=4", "evaluation.long_trajectories=1",
           "model.closure_degree=0",  # the closure's fit has tests of its own (tests/test_closure.py)
+          "evaluation.figures=0",  # the script's figures are checked, not the run's
           # the cantilever's 1-epoch POD-subspace model leaves its table's box in the long speed-up rollout and
           # pays exact jets there (6 min under load): the script is what is tested, on the plain embedding
           *(["model.pod_subspace=false"] if scene == "elastic" else []),
@@ -571,6 +573,7 @@ def test_elastic_diagnostics_smoke(tmp_path):
           "data.fine_resolution=8", "data.coarse_resolution=8", "model.width=16", "model.hyper_width=8",
           "quadrature.order=[4,3]", "evaluation.long_steps=4", "evaluation.long_trajectories=1",
           "model.gradient_weight=1.0", "model.dynamics_weight=1.0", "optimizer.energy_warmup_epochs=0",
+          "evaluation.figures=0",  # the diagnostics read the checkpoint, not the run's figures
           f"paths.data_dir={tmp_path / 'data'}", f"hydra.run.dir={run}"])
     fit = json.loads((run / "metrics.json").read_text())
     assert "train/gradient" in fit and "train/dynamics" in fit  # the FEM's ∇_X u and the observed ü reached the loss

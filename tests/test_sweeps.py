@@ -17,7 +17,9 @@ TINY_RUN = ["+experiment=pendulum", "trainer=smoke", "logger=csv", "threads=1", 
 
 
 def test_optuna_search_minimises_the_validation_metric(tmp_path):
-    run_cli(["-m", *TINY_RUN, "hparams_search=pendulum_optuna", "hydra.sweeper.n_trials=3"], tmp_path)
+    run_cli(["-m", *TINY_RUN, "hparams_search=pendulum_optuna", "hydra.sweeper.n_trials=3",
+             # the validation metric is optimised (rollouts kept); no figures or long-horizon check
+             "evaluation.figures=0", "evaluation.long_steps=0"], tmp_path)
     (result,) = tmp_path.glob("outputs/pendulum/multiruns/*/optimization_results.yaml")
     best = yaml.safe_load(result.read_text())
     trials = [json.loads(p.read_text()) for p in sorted(result.parent.glob("*/metrics.json"))]
@@ -38,8 +40,9 @@ def test_optuna_search_minimises_the_validation_metric(tmp_path):
 
 
 def test_local_parallel_launcher_runs_jobs_with_dataloader_workers(tmp_path):
-    run_cli(["-m", *TINY_RUN, "hydra/launcher=local_parallel", "data.num_workers=1", "model.latent_dim=1,2"],
-            tmp_path)
+    run_cli(["-m", *TINY_RUN, "hydra/launcher=local_parallel", "data.num_workers=1", "model.latent_dim=1,2",
+             # checks the jobs' metrics and table: no figures, validation rollouts or long-horizon check
+             "evaluation.figures=0", "evaluation.every_n_epochs=0", "evaluation.long_steps=0"], tmp_path)
     runs = sorted(tmp_path.glob("outputs/pendulum/multiruns/*/*/metrics.json"))
     assert len(runs) == 2
     dims = sorted(json.loads((p.parent / "run.json").read_text())["config"]["model"]["latent_dim"] for p in runs)

@@ -22,7 +22,9 @@ pytestmark = pytest.mark.slow
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("run")
-    cfg = compose_config("train", ["+experiment=pendulum", "trainer=smoke", *TINY], tmp)
+    # the tests of this run check its test metrics, figures, long-horizon check and checkpoint, never a validation
+    # rollout: none at validation time
+    cfg = compose_config("train", ["+experiment=pendulum", "trainer=smoke", *TINY, "evaluation.every_n_epochs=0"], tmp)
     metrics = train(cfg)
     return tmp, cfg, metrics
 
@@ -121,7 +123,10 @@ def test_load_errors(tmp_path):
 def test_a_run_without_a_logger_trains_and_writes_its_metrics(tmp_path):
     """logger=none: the learning-rate monitor of the default callbacks (which needs a logger) is left out."""
     cfg = compose_config("train", ["+experiment=pendulum", "trainer=smoke", "trainer.max_epochs=1", "logger=none",
-                                   "evaluation.figures=0", *TINY], tmp_path)
+                                   *TINY,
+                                   # checks only metrics.json: no figures, validation rollouts or long-horizon check
+                                   "evaluation.figures=0", "evaluation.every_n_epochs=0", "evaluation.long_steps=0"],
+                         tmp_path)
     train(cfg)
     assert (Path(cfg.paths.output_dir) / "metrics.json").is_file()
 
@@ -194,7 +199,9 @@ def test_cli_multirun_sweep(tmp_path):
     """The documented sweep command, with tiny settings, through the real CLI."""
     env = {**os.environ, "LNF_ROOT": str(tmp_path), "WANDB_MODE": "offline"}
     cmd = [sys.executable, "-m", "lnf.train", "-m", "+experiment=pendulum", "integrator=rk4,implicit_midpoint",
-           "model.latent_dim=1,2", "trainer=smoke", "logger=csv", "trainer.max_epochs=1", *TINY]
+           "model.latent_dim=1,2", "trainer=smoke", "logger=csv", "trainer.max_epochs=1", *TINY,
+           # each job's metrics are what is checked: no figures, validation rollouts or long-horizon check
+           "evaluation.figures=0", "evaluation.every_n_epochs=0", "evaluation.long_steps=0"]
     proc = subprocess.run(cmd, cwd=Path(__file__).resolve().parents[1], env=env, capture_output=True, text=True,
                           timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]
@@ -225,7 +232,10 @@ BASELINES = {
 @pytest.mark.parametrize("name", sorted(BASELINES))
 def test_each_baseline_is_trained_and_evaluated_by_the_same_entry_point(name, tmp_path):
     data = [o for o in TINY if o.startswith(("data.", "evaluation."))]
-    cfg = compose_config("train", ["+experiment=pendulum", "trainer=smoke", "logger=csv", *data, *BASELINES[name]],
+    cfg = compose_config("train", ["+experiment=pendulum", "trainer=smoke", "logger=csv", *data, *BASELINES[name],
+                                   # checks test metrics and the checkpoint: no figures, validation rollouts or
+                                   # long-horizon check
+                                   "evaluation.figures=0", "evaluation.every_n_epochs=0", "evaluation.long_steps=0"],
                          tmp_path)
     metrics = train(cfg)
     out = Path(cfg.paths.output_dir)
@@ -247,7 +257,11 @@ def test_last_checkpoint_holds_the_weights_the_run_tested(tmp_path):
     when the best epoch is an earlier one (here the best-epoch callback is told that a higher validation loss is
     better). Lightning 2.6's save_last=True copied last.ckpt only when a better epoch was saved."""
     cfg = compose_config("train", ["+experiment=pendulum", "trainer=smoke", "trainer.max_epochs=3", "logger=csv", *TINY,
-                                   "callbacks.checkpoint.mode=max"], tmp_path)
+                                   "callbacks.checkpoint.mode=max",
+                                   # checkpoints (by val/loss, not a rollout) and test metrics: no figures, validation
+                                   # rollouts or long-horizon check
+                                   "evaluation.figures=0", "evaluation.every_n_epochs=0", "evaluation.long_steps=0"],
+                         tmp_path)
     metrics = train(cfg)
     ckpts = Path(cfg.paths.output_dir) / "checkpoints"
     best = sorted(ckpts.glob("epoch*.ckpt"))
@@ -278,7 +292,11 @@ SCENE_EXPERIMENTS = {
 @pytest.mark.parametrize("experiment", sorted(SCENE_EXPERIMENTS))
 def test_every_scene_experiment_trains_and_evaluates(experiment, tmp_path):
     cfg = compose_config("train", [f"+experiment={experiment}", "trainer=smoke", "logger=csv", *TINY,
-                                   *SCENE_EXPERIMENTS[experiment]], tmp_path)
+                                   *SCENE_EXPERIMENTS[experiment],
+                                   # checks test metrics and the checkpoint: no figures or validation rollouts (the
+                                   # long-horizon check stays: each scene's run goes through it)
+                                   "evaluation.figures=0", "evaluation.every_n_epochs=0"],
+                         tmp_path)
     metrics = train(cfg)
     assert {"field_rel_l2/all/median", "vpt/median", "energy_rel_err/max"} <= set(metrics)
     assert metrics["train_seconds"] > 0
