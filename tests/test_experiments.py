@@ -554,18 +554,8 @@ def test_scenes_script_measures_a_tiny_elastic_checkpoint(scene, tmp_path):
 
 def test_elastic_diagnostics_smoke(tmp_path):
     """Content of both releases on a tiny mesh, and the energy, gradient, equation-residual, curve and tangent
-    diagnostics of a tiny checkpoint (trained with the gradient and dynamics-residual losses)."""
+    diagnostics of a tiny checkpoint (trained with the gradient and dynamics-residual losses), in one call."""
     reports = tmp_path / "reports"
-    out = _run(["-m", "experiments.elastic_diagnostics", "--content", "--oracle", "--degree", "1", "2", "--runs", "2",
-                "--mesh", "6", "3", "--out", str(reports)]).stdout
-    assert "release = 'shape'" in out and "release = 'modal'" in out and "cubic 2-D manifold" in out
-    assert "oracle d = 1 reduction" in out and "rollout error in the horizon, median" in out
-    oracle = (reports / "oracle" / "summary.md").read_text()  # the tables results_tables.py shows
-    assert "Command: `python -m experiments.elastic_diagnostics --content --oracle --degree 1 2" in oracle
-    assert "| linear (one POD mode, POD-Galerkin) |" in oracle and "| quadratic |" in oracle
-    assert set(json.loads((reports / "oracle" / "oracle.json").read_text())) == {"1", "2"}
-    content = (reports / "content" / "summary.md").read_text()
-    assert "| `shape` |" in content and "| `modal` (the default) |" in content
     run = tmp_path / "run"
     _run(["-m", "lnf.train", "+experiment=elastic", "trainer=smoke", "logger=csv", "scene.mesh=[6,3]",
           "integrator.max_substeps=4",  # a 1-epoch model is stiff: no rollout crawls at 64 substeps
@@ -577,7 +567,16 @@ def test_elastic_diagnostics_smoke(tmp_path):
           f"paths.data_dir={tmp_path / 'data'}", f"hydra.run.dir={run}"])
     fit = json.loads((run / "metrics.json").read_text())
     assert "train/gradient" in fit and "train/dynamics" in fit  # the FEM's ∇_X u and the observed ü reached the loss
-    out = _run(["-m", "experiments.elastic_diagnostics", "--ckpt", str(run / "checkpoints" / "last.ckpt")]).stdout
+    out = _run(["-m", "experiments.elastic_diagnostics", "--content", "--oracle", "--degree", "1", "2", "--runs", "2",
+                "--mesh", "6", "3", "--out", str(reports), "--ckpt", str(run / "checkpoints" / "last.ckpt")]).stdout
+    assert "release = 'shape'" in out and "release = 'modal'" in out and "cubic 2-D manifold" in out
+    assert "oracle d = 1 reduction" in out and "rollout error in the horizon, median" in out
+    oracle = (reports / "oracle" / "summary.md").read_text()  # the tables results_tables.py shows
+    assert "Command: `python -m experiments.elastic_diagnostics --content --oracle --degree 1 2" in oracle
+    assert "| linear (one POD mode, POD-Galerkin) |" in oracle and "| quadratic |" in oracle
+    assert set(json.loads((reports / "oracle" / "oracle.json").read_text())) == {"1", "2"}
+    content = (reports / "content" / "summary.md").read_text()
+    assert "| `shape` |" in content and "| `modal` (the default) |" in content
     assert "T_FEM" in out and "velocity-gradient relative error" in out and "relative residual, median" in out
     assert "FEM through φ: small-amplitude period" in out and "model: rollout error in the horizon" in out
     assert "period of the learned tangent under the FEM's K_t" in out
