@@ -20,6 +20,9 @@ TINY = ["data.n_train=3", "data.n_val=1", "data.n_test=2", "data.n_times=20", "d
         "model.hyper_width=8", "evaluation.long_steps=20", "evaluation.long_trajectories=1",
         "evaluation.every_n_epochs=1", "evaluation.val_trajectories=1", "evaluation.val_resolution=8",
         "evaluation.figures=1", "evaluation.max_reduction_points=64", "quadrature.order=4"]
+# for runs whose tests read only checkpoints, files and metrics.json: no figure, validation rollout or long-horizon
+# check (a run compared with another gets the same overrides)
+METRICS_ONLY = ["evaluation.figures=0", "evaluation.every_n_epochs=0", "evaluation.long_steps=0"]
 
 
 def compose_config(name: str, overrides: list[str], tmp_path: Path) -> DictConfig:

@@ -7,7 +7,7 @@ import sys
 import pytest
 import torch
 
-from helpers import ROOT, TINY, compose_config, run_cli
+from helpers import METRICS_ONLY, ROOT, TINY, compose_config, run_cli
 from lnf.closure import ClosedDynamics, ClosureLeftItsRange, PotentialClosure, equation_residual, monomial_exponents
 from lnf.integrators import get_integrator
 from test_dynamics import _nonlinear_setup, _pendulum_dynamics
@@ -146,7 +146,7 @@ def test_a_run_fits_the_closure_and_its_checkpoint_loads_with_it(tmp_path):
     run_cli(["+experiment=pendulum", "trainer=smoke", "trainer.max_epochs=2", "logger=csv", "threads=1", *TINY,
              "model.closure_degree=3", "evaluation.val_trajectories=1",
              # the closure and its metrics are what is checked: no figures, validation epochs or long-horizon check
-             "evaluation.figures=0", "evaluation.every_n_epochs=0", "evaluation.long_steps=0",
+             *METRICS_ONLY,
              f"hydra.run.dir={run}"], tmp_path)
     metrics = json.loads((run / "metrics.json").read_text())
     for key in ("closure_regularizer", "closure_val_error", "closure_pullback_val_error", "closure_seconds"):

@@ -1,6 +1,5 @@
 """Reduced dynamics against closed forms (docs/method.md §5, §7.1)."""
 import numpy as np
-import pytest
 import torch
 
 from analytic import LinearModeEmbedding, NonlinearEmbedding

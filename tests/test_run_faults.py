@@ -11,16 +11,13 @@ from pathlib import Path
 import pytest
 import torch
 
-from helpers import TINY, compose_config, result_metrics
+from helpers import METRICS_ONLY, TINY, compose_config, result_metrics
 from lnf.train import train
 from lnf.training import checkpoints as C
 
 pytestmark = pytest.mark.slow
 
 BASE = ["+experiment=pendulum", "trainer=smoke", "logger=csv", *TINY]
-# for the runs whose tests check checkpoints, resumption and metrics.json, never a figure, a validation rollout or
-# the long-horizon check; the finished run and every run resumed from or compared with it get them alike
-QUICK = ["evaluation.figures=0", "evaluation.every_n_epochs=0", "evaluation.long_steps=0"]
 
 
 def _cfg(tmp_path: Path, *overrides: str):
@@ -39,7 +36,7 @@ def _loads(path: Path) -> bool:
 def finished(tmp_path_factory):
     """A finished 2-epoch run (folder with out/ and data/) and its metrics; tests copy it, never change it."""
     root = tmp_path_factory.mktemp("finished")
-    return root, train(_cfg(root, "trainer.max_epochs=2", *QUICK))
+    return root, train(_cfg(root, "trainer.max_epochs=2", *METRICS_ONLY))
 
 
 def _copy_of(finished, tmp_path: Path) -> Path:
@@ -88,14 +85,14 @@ def test_temporaries_of_killed_checkpoint_writers_are_removed_on_resume(tmp_path
 
 
 def test_disk_full_while_training_leaves_only_loadable_checkpoints_and_the_run_resumes(tmp_path, monkeypatch):
-    cfg = _cfg(tmp_path, "trainer.max_epochs=2", *QUICK)
+    cfg = _cfg(tmp_path, "trainer.max_epochs=2", *METRICS_ONLY)
     monkeypatch.setattr(C.torch, "save", _failing_save(3))  # epoch 0: best + last; epoch 1: the best's write fails
     with pytest.raises(C.CheckpointWriteError, match="disk is full"):
         train(cfg)
     folder = _out(tmp_path) / "checkpoints"
     assert sorted(folder.iterdir()) and all(_loads(p) for p in folder.iterdir()), sorted(folder.iterdir())
     monkeypatch.undo()
-    metrics = train(_cfg(tmp_path, "trainer.max_epochs=2", *QUICK))  # the same command picks the valid checkpoint up
+    metrics = train(_cfg(tmp_path, "trainer.max_epochs=2", *METRICS_ONLY))  # the same command picks the valid checkpoint up
     assert metrics["epochs_run"] == 2 and (_out(tmp_path) / "metrics.json").is_file()
 
 
@@ -106,7 +103,7 @@ def test_resume_skips_a_truncated_checkpoint_for_the_newest_valid_one(finished, 
     last.write_bytes(last.read_bytes()[:500])  # truncated, as a full disk left it with Lightning's own writer
     (_out(tmp_path) / "metrics.json").unlink()
     with caplog.at_level(logging.WARNING, logger="lnf.train"):
-        metrics = train(_cfg(tmp_path, "trainer.max_epochs=3", *QUICK))
+        metrics = train(_cfg(tmp_path, "trainer.max_epochs=3", *METRICS_ONLY))
     assert "skipping checkpoint" in caplog.text and "last.ckpt" in caplog.text
     assert metrics["epochs_run"] == 3 and _loads(last)
     # ckpt_path=last falls back the same way; an explicit file that does not load is an error naming it
@@ -125,7 +122,7 @@ def test_a_figure_that_cannot_be_drawn_is_a_warning_after_the_results_are_writte
         raise ValueError("grid_shape must be a pair of positive ints")  # what a 1-D body raised
 
     monkeypatch.setattr(lnf.plotting, "figure3", broken)
-    with caplog.at_level(logging.WARNING, logger="lnf.evaluation"):  # Figure 3 drawn, without the rest of QUICK
+    with caplog.at_level(logging.WARNING, logger="lnf.evaluation"):  # Figure 3 drawn, without the rest of METRICS_ONLY
         metrics = train(_cfg(tmp_path, "evaluation.every_n_epochs=0", "evaluation.long_steps=0"))
     out = _out(tmp_path)
     assert json.loads((out / "metrics.json").read_text()).keys() == metrics.keys()
@@ -141,7 +138,7 @@ def test_no_experiment_has_a_time_limit_by_default(tmp_path):
 
 
 def test_a_time_limit_that_stops_training_is_recorded_and_said(finished, tmp_path, capsys):
-    train(_cfg(tmp_path, "trainer.max_epochs=3", 'trainer.max_time="00:00:00:00"', *QUICK))
+    train(_cfg(tmp_path, "trainer.max_epochs=3", 'trainer.max_time="00:00:00:00"', *METRICS_ONLY))
     saved = json.loads((_out(tmp_path) / "metrics.json").read_text())
     assert saved["stopped_by_time_limit"] == 1.0 and saved["epochs_run"] < saved["max_epochs"] == 3
     assert "STOPPED by the time limit" in capsys.readouterr().out
@@ -154,7 +151,7 @@ def test_a_time_limit_that_stops_training_is_recorded_and_said(finished, tmp_pat
 def test_resuming_a_checkpoint_of_another_scene_is_refused_unless_asked_for(finished, tmp_path, caplog):
     _copy_of(finished, tmp_path)
     (_out(tmp_path) / "metrics.json").unlink()
-    other = ["trainer.max_epochs=3", "scene.length=1.5", *QUICK]  # same shapes, another pendulum
+    other = ["trainer.max_epochs=3", "scene.length=1.5", *METRICS_ONLY]  # same shapes, another pendulum
     with pytest.raises(ValueError, match=r"trained on another scene.*scene\.length.*resume_other_scene=true"):
         train(_cfg(tmp_path, *other))
     assert not (_out(tmp_path) / "metrics.json").exists()
@@ -165,7 +162,7 @@ def test_resuming_a_checkpoint_of_another_scene_is_refused_unless_asked_for(fini
 
 def test_a_resumed_run_keeps_its_log_and_provenance_history(finished, tmp_path):
     _copy_of(finished, tmp_path)
-    train(_cfg(tmp_path, "trainer.max_epochs=3", *QUICK))
+    train(_cfg(tmp_path, "trainer.max_epochs=3", *METRICS_ONLY))
     out = _out(tmp_path)
     assert [p.name for p in (out / "csv").iterdir()] == ["version_0"]
     rows = (out / "csv" / "version_0" / "metrics.csv").read_text().splitlines()
@@ -202,7 +199,7 @@ def test_a_damaged_test_split_is_regenerated_before_training(finished, tmp_path,
     with h5py.File(data, "r+") as f:
         f["test/fields"][0, 3, 5, 0] = float("inf")
     with caplog.at_level(logging.WARNING, logger="lnf.dataset"):
-        metrics = train(_cfg(tmp_path, "trainer.max_epochs=2", *QUICK))
+        metrics = train(_cfg(tmp_path, "trainer.max_epochs=2", *METRICS_ONLY))
     assert "regenerating" in caplog.text and "/test/fields" in caplog.text
     assert result_metrics(metrics) == result_metrics(finished[1])
 
@@ -217,11 +214,11 @@ def test_a_resumed_checkpoint_of_other_settings_is_refused_unless_asked_for(fini
                          (["optimizer.lr=0.1"], r"optimizer\.lr: checkpoint 0\.0003, config 0\.1"),
                          (["data.seed=5"], r"data\.seed: checkpoint 0, config 5")]:
         with pytest.raises(ValueError, match=rf"trained with other settings \({named}.*resume_other_settings=true"):
-            train(_cfg(tmp_path, "trainer.max_epochs=3", *other, *QUICK))
+            train(_cfg(tmp_path, "trainer.max_epochs=3", *other, *METRICS_ONLY))
         assert not (_out(tmp_path) / "metrics.json").exists()
     with caplog.at_level(logging.WARNING, logger="lnf.train"):
         metrics = train(_cfg(tmp_path, "trainer.max_epochs=3", "optimizer.lr=0.1", "resume_other_settings=true",
-                             *QUICK))
+                             *METRICS_ONLY))
     assert metrics["epochs_run"] == 3 and "optimizer.lr: checkpoint 0.0003, config 0.1" in caplog.text
 
 
@@ -247,7 +244,7 @@ def test_a_resumed_checkpoint_cannot_make_training_delete_files_outside_its_fold
     for name in ("last.ckpt", *[p.name for p in (out / "checkpoints").glob("epoch*.ckpt")]):
         torch.save(ckpt, out / "checkpoints" / name)
     with caplog.at_level(logging.WARNING, logger="lnf.train"):
-        metrics = train(_cfg(tmp_path, "trainer.max_epochs=3", *QUICK))
+        metrics = train(_cfg(tmp_path, "trainer.max_epochs=3", *METRICS_ONLY))
     assert metrics["epochs_run"] == 3
     assert victim.read_text() == "a user's file" and notes.read_text() == "a user's notes beside the checkpoints"
     assert mine.read_text() == "a user's checkpoint"
@@ -260,7 +257,7 @@ def test_a_fresh_run_in_a_folder_with_earlier_results_keeps_them(tmp_path):
     out.mkdir(parents=True)
     (out / "metrics.json").write_text('{"an earlier": "evaluation"}')
     (out / "run.json").write_text("not json, a user's notes")
-    train(_cfg(tmp_path, "trainer.max_epochs=1", *QUICK))
+    train(_cfg(tmp_path, "trainer.max_epochs=1", *METRICS_ONLY))
     (previous,) = (out / "previous").iterdir()
     assert json.loads((previous / "metrics.json").read_text()) == {"an earlier": "evaluation"}
     assert (previous / "run.json").read_text() == "not json, a user's notes"

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from helpers import TINY, compose_config
+from helpers import METRICS_ONLY, TINY, compose_config
 from lnf.run_lock import LOCK_NAME, RunFolderBusyError, run_folder_lock
 
 HOLD = ("import sys, time; from lnf.run_lock import run_folder_lock\n"
@@ -76,9 +76,9 @@ def test_an_evaluation_sets_earlier_results_aside_and_writes_its_provenance_firs
     from lnf.train import train
 
     cfg = compose_config("train", ["+experiment=pendulum", "trainer=smoke", "trainer.max_epochs=1", "logger=csv",
-                                   *TINY, "evaluation.figures=0", "evaluation.every_n_epochs=0",
-                                   # the evaluation's files are checked, not the training's: no long-horizon check
-                                   "evaluation.long_steps=0"], tmp_path / "t")
+                                   *TINY,
+                                   # the evaluation's files are checked, not the training's
+                                   *METRICS_ONLY], tmp_path / "t")
     train(cfg)
     ckpt = Path(cfg.paths.output_dir) / "checkpoints" / "last.ckpt"
     ecfg = compose_config("evaluate", [f"ckpt_path={ckpt}", "figures=0", "split=val"], tmp_path / "e")
@@ -132,9 +132,8 @@ def test_an_evaluation_into_a_training_folder_keeps_the_trainings_files(tmp_path
     run = tmp_path / "run"
     env = {**os.environ, "LNF_ROOT": str(tmp_path), "WANDB_MODE": "offline"}
     train = subprocess.run([sys.executable, "-m", "lnf.train", "+experiment=pendulum", "trainer=smoke",
-                            "trainer.max_epochs=1", "logger=csv", *TINY, "evaluation.figures=0",
-                            # checks only which files are kept: no validation rollouts or long-horizon check
-                            "evaluation.every_n_epochs=0", "evaluation.long_steps=0",
+                            "trainer.max_epochs=1", "logger=csv", *TINY,
+                            *METRICS_ONLY,  # checks only which files are kept
                             f"hydra.run.dir={run}"], env=env, capture_output=True, text=True, timeout=300)
     assert train.returncode == 0, train.stderr[-2000:]
     trained = json.loads((run / "metrics.json").read_text())

@@ -1,14 +1,13 @@
 """Sweeps through Hydra's plugins: Optuna search, the local parallel launcher, the SLURM launcher config."""
 import csv
 import json
-from pathlib import Path
 
 import pytest
 import yaml
 from hydra import compose, initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
 
-from helpers import CONF, TINY, run_cli
+from helpers import CONF, METRICS_ONLY, TINY, run_cli
 from lnf.train import optimized_value
 
 pytestmark = pytest.mark.slow
@@ -42,7 +41,7 @@ def test_optuna_search_minimises_the_validation_metric(tmp_path):
 def test_local_parallel_launcher_runs_jobs_with_dataloader_workers(tmp_path):
     run_cli(["-m", *TINY_RUN, "hydra/launcher=local_parallel", "data.num_workers=1", "model.latent_dim=1,2",
              # checks the jobs' metrics and table: no figures, validation rollouts or long-horizon check
-             "evaluation.figures=0", "evaluation.every_n_epochs=0", "evaluation.long_steps=0"], tmp_path)
+             *METRICS_ONLY], tmp_path)
     runs = sorted(tmp_path.glob("outputs/pendulum/multiruns/*/*/metrics.json"))
     assert len(runs) == 2
     dims = sorted(json.loads((p.parent / "run.json").read_text())["config"]["model"]["latent_dim"] for p in runs)

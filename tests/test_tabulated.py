@@ -91,7 +91,7 @@ def test_tabulated_refuses_forced_scenes_unbounded_boxes_and_large_tables():
 
 
 def test_model_tracks_training_codes_and_tabulates_on_their_range(pendulum, tmp_path):
-    from lnf.model import LagrangianNeuralField, load
+    from lnf.model import LagrangianNeuralField
 
     model = LagrangianNeuralField(pendulum, width=16, hyper_width=8)
     model.set_tabulation({"margin": 0.5})

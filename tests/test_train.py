@@ -11,7 +11,7 @@ import torch
 from omegaconf import OmegaConf
 
 import lnf
-from helpers import TINY, compose_config
+from helpers import METRICS_ONLY, TINY, compose_config
 from lnf.evaluate import evaluate
 from lnf.integrators import RK4, get_integrator
 from lnf.train import train
@@ -125,7 +125,7 @@ def test_a_run_without_a_logger_trains_and_writes_its_metrics(tmp_path):
     cfg = compose_config("train", ["+experiment=pendulum", "trainer=smoke", "trainer.max_epochs=1", "logger=none",
                                    *TINY,
                                    # checks only metrics.json: no figures, validation rollouts or long-horizon check
-                                   "evaluation.figures=0", "evaluation.every_n_epochs=0", "evaluation.long_steps=0"],
+                                   *METRICS_ONLY],
                          tmp_path)
     train(cfg)
     assert (Path(cfg.paths.output_dir) / "metrics.json").is_file()
@@ -201,7 +201,7 @@ def test_cli_multirun_sweep(tmp_path):
     cmd = [sys.executable, "-m", "lnf.train", "-m", "+experiment=pendulum", "integrator=rk4,implicit_midpoint",
            "model.latent_dim=1,2", "trainer=smoke", "logger=csv", "trainer.max_epochs=1", *TINY,
            # each job's metrics are what is checked: no figures, validation rollouts or long-horizon check
-           "evaluation.figures=0", "evaluation.every_n_epochs=0", "evaluation.long_steps=0"]
+           *METRICS_ONLY]
     proc = subprocess.run(cmd, cwd=Path(__file__).resolve().parents[1], env=env, capture_output=True, text=True,
                           timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]
@@ -235,7 +235,7 @@ def test_each_baseline_is_trained_and_evaluated_by_the_same_entry_point(name, tm
     cfg = compose_config("train", ["+experiment=pendulum", "trainer=smoke", "logger=csv", *data, *BASELINES[name],
                                    # checks test metrics and the checkpoint: no figures, validation rollouts or
                                    # long-horizon check
-                                   "evaluation.figures=0", "evaluation.every_n_epochs=0", "evaluation.long_steps=0"],
+                                   *METRICS_ONLY],
                          tmp_path)
     metrics = train(cfg)
     out = Path(cfg.paths.output_dir)
@@ -260,7 +260,7 @@ def test_last_checkpoint_holds_the_weights_the_run_tested(tmp_path):
                                    "callbacks.checkpoint.mode=max",
                                    # checkpoints (by val/loss, not a rollout) and test metrics: no figures, validation
                                    # rollouts or long-horizon check
-                                   "evaluation.figures=0", "evaluation.every_n_epochs=0", "evaluation.long_steps=0"],
+                                   *METRICS_ONLY],
                          tmp_path)
     metrics = train(cfg)
     ckpts = Path(cfg.paths.output_dir) / "checkpoints"

@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from helpers import TINY, compose_config
+from helpers import METRICS_ONLY, TINY, compose_config
 from lnf.w0_search import SPANS, search_w0, w0_for_span
 
 
@@ -76,7 +76,7 @@ def test_a_run_with_w0_auto_chooses_a_candidate_and_stores_it(tmp_path):
     cfg = compose_config("train", ["+experiment=pendulum", "trainer=smoke", "trainer.max_epochs=1", "logger=csv",
                                    "model.w0=auto", *TINY,
                                    # checks only the chosen w0: no figures, validation rollouts or long-horizon check
-                                   "evaluation.figures=0", "evaluation.every_n_epochs=0", "evaluation.long_steps=0"],
+                                   *METRICS_ONLY],
                          tmp_path)
     metrics = train(cfg)
     candidates = [w0_for_span([[-1, 1], [-1, 1]], s) for s in SPANS]
@@ -107,7 +107,7 @@ def test_the_search_shares_one_pod_fit_with_its_candidates_and_the_run(tmp_path,
                                    "model.w0=auto", "model.pod_subspace=true", "model.pod_degree=4",
                                    *TINY,
                                    # checks only the POD fit: no figures, validation rollouts or long-horizon check
-                                   "evaluation.figures=0", "evaluation.every_n_epochs=0", "evaluation.long_steps=0"],
+                                   *METRICS_ONLY],
                          tmp_path)
     with caplog.at_level(logging.INFO, logger="lnf.pod"):
         metrics = train(cfg)
