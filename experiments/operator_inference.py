@@ -53,9 +53,7 @@ def split_controls(scene: Any, split: Any) -> Optional[np.ndarray]:
     (stored ones, else the scene's from the initial states, as lnf's evaluation): the scene's input series u(t)
     (n, T, m) where it says how its loads vary in time (``Scene.input_signals``), else the parameters (n, c) as a
     constant input (a held series would give each step the same input twice); None for a scene without loads."""
-    controls = split.controls
-    if controls is None and split.states.shape[-1] > 0:
-        controls = scene.controls(np.asarray(split.states[:, 0]))
+    controls = split.loads(scene)
     if controls is None:
         return None
     controls = np.asarray(controls, dtype=np.float64)

@@ -61,7 +61,8 @@ def fit_closure(model: Any, datamodule: Any, spec: Any) -> dict[str, float]:
         log.info("potential closure: none (%s rolls out learned latent dynamics)", type(model).__name__)
         return _record(best, pullback_error, False, time.perf_counter() - start)
     points, values, velocities = (torch.as_tensor(a) for a in datamodule.observations("train"))
-    controls = None if train.controls is None else torch.as_tensor(train.controls)
+    loads = train.loads(model.scene)  # the scene's loads where the file stores none (the actuated cantilever)
+    controls = None if loads is None else torch.as_tensor(loads)
     with torch.no_grad():
         q, v = latent_trajectories(model, points, values, velocities)
         codes, residual = equation_residual(model.lagrangian_dynamics(), q, v, datamodule.dt,

@@ -220,3 +220,58 @@ def test_shooting_recovers_the_closure_whose_motion_the_codes_follow_from_a_wron
         start, end = shoot_closure(_ClosedModel(base, fitted), motion.q, motion.v, dt, None, "rk4")
         assert end < 1e-3 * start
         torch.testing.assert_close(fitted.coef, truth.coef, rtol=1e-4, atol=1e-5)
+
+
+def test_the_closure_fit_reads_a_forced_scenes_loads_where_the_file_stores_none(tmp_path, monkeypatch):
+    """A generated actuated cantilever keeps its loads (A, f) in the states, not in a `controls` dataset: the closure's
+    residual and shooting must act them, as the evaluation does (they once ran without the actuation)."""
+    import dataclasses
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from lnf import closure_choice
+    from lnf.dataset import DatasetConfig, generate_dataset, load_split
+    from lnf.scenes import ElasticCantilever
+
+    scene = ElasticCantilever(mesh=(4, 2), damping=0.3, load_amplitude_range=(-0.6, 0.6),
+                              load_frequency_range=(0.3, 0.7))
+    path = generate_dataset(scene, DatasetConfig(n_train=3, n_val=1, n_test=1, n_times=8, dt=0.05, train_times=4,
+                                                 fine_resolution=6, coarse_resolution=4, observed_fraction=0.5),
+                            tmp_path / "actuated.h5")
+    train, val = load_split(path, "train"), load_split(path, "val")
+    assert train.controls is None  # nothing stored beside the states
+    loads = train.loads(scene)
+    np.testing.assert_array_equal(loads, scene.controls(train.states[:, 0]))
+    assert loads.shape == (3, 2) and np.abs(loads[:, 0]).max() > 0
+
+    seen = {}
+
+    class Stop(Exception):
+        pass
+
+    def residual(dynamics, codes, velocities, dt, t0, controls):
+        seen["controls"] = controls
+        raise Stop
+
+    @dataclasses.dataclass
+    class Spec:
+        split: str = "test"
+        label: str = ""
+        long_steps: int = 0
+        figures: int = 0
+        keep_fields: int = 0
+        progress: bool = False
+
+    codes = torch.zeros(3, 4, 1)
+    monkeypatch.setattr(closure_choice, "evaluate_model",
+                        lambda model, data, spec: SimpleNamespace(metrics={"field_rel_l2/in_horizon/median": 0.1}))
+    monkeypatch.setattr(closure_choice, "latent_trajectories", lambda *args: (codes, codes))
+    monkeypatch.setattr(closure_choice, "equation_residual", residual)
+    model = SimpleNamespace(closure=PotentialClosure(1, 2), scene=scene, eval=lambda: None, latent_dynamics=None,
+                            lagrangian_dynamics=lambda: None)
+    datamodule = SimpleNamespace(split={"train": train, "val": val}.__getitem__, dt=0.05,
+                                 observations=lambda split: train.observed(4, velocities=True))
+    with pytest.raises(Stop):
+        closure_choice.fit_closure(model, datamodule, Spec())
+    torch.testing.assert_close(seen["controls"], torch.as_tensor(loads))

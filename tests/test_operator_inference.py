@@ -133,9 +133,16 @@ def test_the_study_gives_a_scene_s_input_series_only_where_the_scene_defines_the
         def controls(self, states):
             return states[:, -1:]
 
-    split = SimpleNamespace(controls=None, states=np.array([[[0.0, 2.0]], [[0.0, -1.0]]]), times=np.arange(5) * 0.1)
+    from lnf.dataset import TrajectorySplit
+
+    def stand_in(**arrays):  # the parts of a TrajectorySplit that split_controls reads
+        split = SimpleNamespace(**arrays)
+        split.loads = lambda scene: TrajectorySplit.loads(split, scene)
+        return split
+
+    split = stand_in(controls=None, states=np.array([[[0.0, 2.0]], [[0.0, -1.0]]]), times=np.arange(5) * 0.1)
     np.testing.assert_array_equal(split_controls(ConstantLoads.__new__(ConstantLoads), split), [[2.0], [-1.0]])
-    stored = SimpleNamespace(controls=np.array([[0.5, 0.4]]), states=np.zeros((1, 5, 0)), times=split.times)
+    stored = stand_in(controls=np.array([[0.5, 0.4]]), states=np.zeros((1, 5, 0)), times=split.times)
     series = split_controls(ElasticCantilever.__new__(ElasticCantilever), stored)
     np.testing.assert_allclose(series[0, :, 0], 0.5 * np.sin(2 * np.pi * 0.4 * split.times))
 

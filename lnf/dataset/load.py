@@ -64,6 +64,15 @@ class TrajectorySplit:
             return scene.true_energy_parts(self.states)
         return None
 
+    def loads(self, scene: Any = None) -> Optional[np.ndarray]:
+        """The per-trajectory load parameters (n, c): stored ones, else ``scene.controls`` of the initial states (as
+        lnf's evaluation reads them); None for a scene without loads."""
+        if self.controls is not None:
+            return self.controls
+        if scene is not None and self.states.shape[-1] > 0:
+            return scene.controls(np.asarray(self.states[:, 0]))
+        return None
+
     @property
     def train_times(self) -> int:
         """Number of leading samples used for training (from the generation attributes)."""
