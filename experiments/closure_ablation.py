@@ -24,7 +24,7 @@ from typing import Any
 
 import torch
 
-from experiments.scenes import datamodule_of
+from experiments.scenes import snapshot_data_of
 from lnf.closure import PotentialClosure
 from lnf.evaluation_pipeline import EvaluationData, EvaluationSpec, evaluate_model
 from lnf.model import load
@@ -52,7 +52,7 @@ def ablate(ckpt: Path, degree: int) -> dict[str, Any]:
     model = load(ckpt)
     if getattr(model, "latent_dynamics", None) is not None or model.state_is_field:
         raise SystemExit(f"--ckpt {ckpt}: {type(model).__name__} has no reduced pulled-back dynamics to close")
-    dm = datamodule_of(model)
+    dm = snapshot_data_of(model)
     spec = EvaluationSpec(integrator=run_integrator(ckpt), label="test rollout", figures=0)
     test = EvaluationData.of_split(dm.split("test"), model.scene)
     model.eval()

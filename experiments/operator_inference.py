@@ -34,15 +34,17 @@ ERR = "field_rel_l2"
 
 
 def load_data(study: S.Study) -> tuple[Any, Any, dict[str, Any]]:
-    """The scene, its dataset's data module (generated or reused as lnf.train does) and its three splits."""
-    import hydra
+    """The scene, its dataset's handle (generated or reused as lnf.train does) and its three splits."""
+    from omegaconf import OmegaConf
+
+    from lnf.dataset.snapshots import SnapshotData
 
     for key, value in S.job_environment().items():  # LNF_ROOT = the repository, an absolute LNF_DATA_DIR
         if key in ("LNF_ROOT", "LNF_DATA_DIR"):
             os.environ[key] = value
     cfg = study.composed(S.SMOKE_DATA if study.mode == "smoke" else ())  # with the tiny data settings under --smoke
     scene = study.scene_object()
-    datamodule = hydra.utils.instantiate(cfg.data, scene=scene, _convert_="all")
+    datamodule = SnapshotData.from_settings(OmegaConf.to_container(cfg.data, resolve=True), scene)
     print(f"[operator_inference] dataset {datamodule.path} (generated if absent)", flush=True)
     datamodule.prepare_data()
     return scene, datamodule, {name: datamodule.split(name) for name in ("train", "val", "test")}

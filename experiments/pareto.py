@@ -200,11 +200,11 @@ def simulator_seconds(ckpt: Path, threads: int, trust: list[str] | None = None, 
     import torch
 
     from lnf.model import load
-    from experiments.scenes import datamodule_of, timed
+    from experiments.scenes import snapshot_data_of, timed
 
     torch.set_num_threads(threads)
     model = load(ckpt, trust=trust)
-    split = datamodule_of(model).split("test")
+    split = snapshot_data_of(model).split("test")
     times = split.times[:frames]
     seconds, _ = timed(lambda: model.scene.simulate(split.states[:, 0], times))
     return {"simulator_seconds_per_trajectory": seconds / len(split.states), "trajectories": len(split.states),

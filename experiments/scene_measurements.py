@@ -20,16 +20,16 @@ from lnf.evaluation import trajectory_controls
 from lnf.evaluation_pipeline import (EvaluationData, EvaluationSpec, checkpoint_data, evaluate_model,
                                      split_long_check)
 from lnf.train import fit_latent_dynamics
-from lnf.training.datamodule import SnapshotDataModule, checkpoint_datamodule
+from lnf.dataset.snapshots import SnapshotData, checkpoint_snapshot_data
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def datamodule_of(model: Any) -> SnapshotDataModule:
+def snapshot_data_of(model: Any) -> SnapshotData:
     """The checkpoint's own dataset (generated if missing), found as lnf.evaluate finds it
     (:func:`lnf.evaluation_pipeline.checkpoint_data`): a data path outside the data folder is only read."""
     data_dir = Path(os.environ.get("LNF_DATA_DIR") or Path(os.environ.get("LNF_ROOT", ROOT)) / "data")
-    return checkpoint_datamodule(model, checkpoint_data(model, data_dir.resolve())[0])
+    return checkpoint_snapshot_data(model, checkpoint_data(model, data_dir.resolve())[0])
 
 
 def evaluate(model: Any, split: Any, integrator: Any, states: np.ndarray | None = None, stride: int = 1) -> Any:
@@ -80,7 +80,7 @@ class Context:
     and the command line's options."""
 
     model: Any
-    dm: SnapshotDataModule
+    dm: SnapshotData
     out: Path
     options: argparse.Namespace
     integrator: dict  # the structure-preserving rule of our rollouts: {"name": "implicit_midpoint", "order": 2|4}

@@ -52,14 +52,14 @@ from typing import Any, Callable, Optional
 import torch
 
 from experiments import studylib
-from experiments.scene_measurements import (Context, Skipped, black_box, damped, datamodule_of, decay,
+from experiments.scene_measurements import (Context, Skipped, black_box, damped, snapshot_data_of, decay,
                                             experiment_integrator_order, loads, modes, shape, speedup, timed,
                                             unseen_load, with_controls)
 from lnf.evaluation_pipeline import ensure_code_range
 from lnf.model import load
 from lnf.tempfiles import write_json_atomic
 
-__all__ = ["applicable", "datamodule_of", "main", "merge", "timed", "unseen_load", "with_controls"]
+__all__ = ["applicable", "snapshot_data_of", "main", "merge", "timed", "unseen_load", "with_controls"]
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -223,7 +223,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     for m, why in reasons.items():
         if m not in chosen:
             print(f"[scenes] {m}: " + (f"skipped, {why}" if why else "not asked for (--measure)"), flush=True)
-    dm = datamodule_of(model)
+    dm = snapshot_data_of(model)
     if args.dynamics != "checkpoint" and hasattr(model, "set_tabulation"):
         model.set_tabulation((model.tabulation or {}) if args.dynamics == "tabulated" else None)
     if getattr(model, "tabulation", None) is not None:

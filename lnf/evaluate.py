@@ -18,6 +18,7 @@ from omegaconf import DictConfig
 from lnf.allocator import keep_freed_memory
 from lnf.closure import PotentialClosure
 from lnf.dataset import load_split
+from lnf.dataset.snapshots import checkpoint_snapshot_data
 from lnf.evaluation_pipeline import checkpoint_data, ensure_code_range, evaluate_model, write_report
 from lnf.evaluation_settings import (check_budget, check_settings, choose_dynamics, planned_cost, rollout_request,
                                      trust_setting)
@@ -25,7 +26,6 @@ from lnf.model import load
 from lnf.run_lock import EVALUATION_RESULTS, run_folder_lock, set_aside
 from lnf.tempfiles import write_json_atomic
 from lnf.training.console import quiet_console
-from lnf.training.datamodule import checkpoint_datamodule
 from lnf.closure_choice import fit_closure
 from lnf.utils import print_summary, run_metadata
 
@@ -81,7 +81,7 @@ def fit_closure_first(model: Any, degree: int, path: Path, spec: Any) -> dict[st
         raise ValueError(f"closure_degree={degree}: a closure corrects reduced pulled-back dynamics; the checkpoint "
                          f"holds a {type(model).__name__} without them")
     model.closure = PotentialClosure(model.latent_dim, degree)
-    return fit_closure(model, checkpoint_datamodule(model, path), spec)
+    return fit_closure(model, checkpoint_snapshot_data(model, path), spec)
 
 
 @hydra.main(version_base="1.3", config_path="pkg://lnf.conf", config_name="evaluate")

@@ -10,7 +10,8 @@ import warnings
 import pytest
 
 from helpers import ROOT, TINY
-from lnf.training.console import MetricsProgressBar, format_metric, quiet_console
+from lnf.training.console import format_metric, quiet_console
+from lnf.training.progress_bar import MetricsProgressBar
 
 
 def _run(args: list[str], root) -> subprocess.CompletedProcess:

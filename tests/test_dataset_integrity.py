@@ -367,7 +367,7 @@ def test_default_paths_keep_one_file_per_setting_set(tmp_path):
 def test_datamodule_verifies_once_until_the_file_changes(tmp_path, monkeypatch, caplog):
     """prepare_data and setup both ensure the dataset: the second verification is skipped while the file
     is unchanged, and redone (here: regenerating it) once it was written."""
-    import lnf.training.datamodule as datamodule_module
+    import lnf.dataset.snapshots as datamodule_module  # where SnapshotDataModule.prepare_data calls it
 
     calls = []
     original = datamodule_module.ensure_dataset

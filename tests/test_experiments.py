@@ -701,7 +701,7 @@ def test_scenes_script_never_writes_a_checkpoints_data_path_outside_the_data_fol
         crafted = tmp_path / f"crafted-{name}.ckpt"
         torch.save(ckpt, crafted)
         before = hashlib.md5((elsewhere / name).read_bytes()).hexdigest()
-        dm = scenes.datamodule_of(lnf.load(crafted))
+        dm = scenes.snapshot_data_of(lnf.load(crafted))
         assert hashlib.md5((elsewhere / name).read_bytes()).hexdigest() == before
         assert Path(dm.path).parent == tmp_path / "t" / "data"
     assert sorted(p.name for p in elsewhere.iterdir()) == ["mydata.h5", "notes.txt"]

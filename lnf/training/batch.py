@@ -32,7 +32,7 @@ class SnapshotBatch:
 
     @classmethod
     def collate(cls, items: Sequence[Mapping[str, Tensor]]) -> "SnapshotBatch":
-        """Stack the items of a :class:`lnf.training.datamodule.SnapshotDataset` (dicts holding the fields they
+        """Stack the items of a :class:`lnf.dataset.snapshots.SnapshotDataset` (dicts holding the fields they
         carry; every item of a dataset carries the same ones)."""
         names = [f.name for f in fields(cls)]
         return cls(**{k: torch.stack([item[k] for item in items]) for k in names if k in items[0]})

@@ -1,5 +1,5 @@
-"""A quiet, informative console for ``lnf.train``: known noise of Lightning and torch filtered out by message,
-losses in scientific notation in the progress bar.
+"""A quiet, informative console for ``lnf.train`` and ``lnf.evaluate``: known noise of Lightning and torch filtered
+out by message (without importing Lightning); the progress bar is lnf/training/progress_bar.py.
 
 Only the messages listed here are dropped, each matched by a precise regular expression (warnings by message and
 category, log records by logger and message): every other warning, lnf's own ones included (a diverged rollout,
@@ -8,11 +8,10 @@ a dropped setting), and every error still shows.
 from __future__ import annotations
 
 import logging
+import os
 import re
 import warnings
-from typing import Any, Union
-
-from lightning.pytorch.callbacks import RichProgressBar
+from typing import Any
 
 # (message regex, category) of warnings that say nothing about an lnf run
 NOISE_WARNINGS: tuple[tuple[str, type[Warning]], ...] = (
@@ -63,11 +62,18 @@ class MessageFilter(logging.Filter):
         return self.pattern.match(message) is None
 
 
-def process_rank() -> int:
-    """The global rank Lightning reads from the environment (RANK, SLURM_PROCID, LOCAL_RANK, ...); 0 alone."""
-    from lightning.fabric.utilities.rank_zero import _get_rank
+#: the environment variables Lightning reads a process's global rank from, in its order (LOCAL_RANK before
+#: SLURM_PROCID, which SLURM sets even where it does not manage the processes)
+RANK_VARIABLES = ("RANK", "LOCAL_RANK", "SLURM_PROCID", "JSM_NAMESPACE_RANK")
 
-    return int(_get_rank() or 0)
+
+def process_rank() -> int:
+    """The global rank as Lightning reads it from the environment (:data:`RANK_VARIABLES`); 0 alone. Read here, not
+    through Lightning, so that lnf.evaluate starts without importing it."""
+    for key in RANK_VARIABLES:
+        if os.environ.get(key) is not None:
+            return int(os.environ[key])
+    return 0
 
 
 def quiet_console() -> None:
@@ -98,18 +104,3 @@ def format_metric(value: Any) -> Any:
     if isinstance(value, float):
         return f"{value:.2e}"
     return value
-
-
-class MetricsProgressBar(RichProgressBar):
-    """Lightning's rich progress bar, without the logger's meaningless ``v_num`` and with the losses in
-    scientific notation (a loss of 1e-4 read 0.000 before)."""
-
-    def get_metrics(self, trainer: Any, pl_module: Any) -> dict[str, Union[int, str, float, dict[str, float]]]:
-        items = super().get_metrics(trainer, pl_module)
-        items.pop("v_num", None)
-        return {k: format_metric(v) for k, v in items.items()}
-
-    def _get_train_description(self, current_epoch: int) -> str:
-        """"Epoch 3/40" counted from 1, as the end-of-run table counts epochs (Lightning's bar says "Epoch 2/39")."""
-        text = f"Epoch {current_epoch + 1}" + (f"/{self.trainer.max_epochs}" if self.trainer.max_epochs else "")
-        return f"{text:{len(self.validation_description)}}"

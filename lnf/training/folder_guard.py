@@ -16,7 +16,6 @@ from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, read_write
 
 from lnf.run_lock import EVALUATION_RESULTS, RunFolderBusyError, run_folder_lock, set_aside
-from lnf.training.checkpoints import candidates
 
 
 class RunFolderGuard(Callback):
@@ -32,7 +31,7 @@ class RunFolderGuard(Callback):
             self._held.enter_context(run_folder_lock(folder, command))
             # an evaluation, or a training that starts afresh (no checkpoint to resume): the folder's earlier run
             # keeps its own files (a resumed training is the same run: its .hydra/ is rewritten, run.json appended)
-            if "split" in config or not candidates(folder):
+            if "split" in config or not _checkpoints(folder):
                 set_aside(folder, (".hydra", *EVALUATION_RESULTS))
         except RunFolderBusyError:
             # Hydra turns a callback's exception into a warning and runs the job anyway: keep it from writing
@@ -42,3 +41,10 @@ class RunFolderGuard(Callback):
 
     def on_run_end(self, config: DictConfig, **kwargs: Any) -> None:
         self._held.close()
+
+
+def _checkpoints(folder: Path) -> list[Path]:
+    """The training checkpoints in `folder` (lnf.training.checkpoints imports Lightning: read only for a training)."""
+    from lnf.training.checkpoints import candidates
+
+    return candidates(folder)

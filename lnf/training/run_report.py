@@ -16,7 +16,7 @@ from lightning.pytorch.callbacks import EarlyStopping, ProgressBar, Timer
 from omegaconf import DictConfig
 
 from lnf.baselines.latent_mlp import latent_trajectories
-from lnf.training.console import MetricsProgressBar
+from lnf.training.progress_bar import MetricsProgressBar
 from lnf.utils import run_metadata
 
 log = logging.getLogger("lnf.train")
