@@ -5,6 +5,7 @@ import os
 import subprocess
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 from hydra import compose, initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
@@ -71,3 +72,12 @@ class DivergesAtStep(RK4):
         if self.calls == self.at:
             bad[self.which] = True
         return bad
+
+
+def split_stand_in(**arrays) -> SimpleNamespace:
+    """A stand-in for a :class:`lnf.dataset.TrajectorySplit` holding `arrays`, with its ``loads(scene)``."""
+    from lnf.dataset import TrajectorySplit
+
+    split = SimpleNamespace(**arrays)
+    split.loads = lambda scene: TrajectorySplit.loads(split, scene)
+    return split

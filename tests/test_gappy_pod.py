@@ -1,9 +1,8 @@
 """Gappy POD (lnf.baselines.gappy_pod) and the "OpInf (observed)" variant (experiments/opinf_observed.py)."""
-from types import SimpleNamespace
-
 import numpy as np
 import pytest
 
+from helpers import split_stand_in
 from lnf.baselines.gappy_pod import complete_snapshots, gappy_encode, interpolation_matrix, select_rank
 
 
@@ -120,10 +119,10 @@ def test_opinf_observed_end_to_end_on_a_tiny_standing_wave(monkeypatch):
         masks = np.zeros((n, 16), dtype=bool)
         for i in range(n):
             masks[i, rng.choice(16, 8, replace=False)] = True
-        return SimpleNamespace(times=0.05 * np.arange(40), fine_points=((np.arange(30) + 0.5) / 30)[:, None],
-                               coarse_points=((np.arange(16) + 0.5) / 16)[:, None], states=np.zeros((n, 40, 0)),
-                               fields=fine[0], velocities=fine[1], coarse_fields=coarse[0],
-                               coarse_velocities=coarse[1], masks=masks, weights=None, controls=None, train_times=20)
+        return split_stand_in(times=0.05 * np.arange(40), fine_points=((np.arange(30) + 0.5) / 30)[:, None],
+                              coarse_points=((np.arange(16) + 0.5) / 16)[:, None], states=np.zeros((n, 40, 0)),
+                              fields=fine[0], velocities=fine[1], coarse_fields=coarse[0],
+                              coarse_velocities=coarse[1], masks=masks, weights=None, controls=None, train_times=20)
 
     splits = {"train": split(4, 0), "val": split(1, 1), "test": split(2, 2)}
     out = opinf_observed.evaluate_observed(None, splits, 4)

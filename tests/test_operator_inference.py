@@ -10,6 +10,7 @@ import pytest
 
 pytest.importorskip("opinf")
 
+from helpers import split_stand_in  # noqa: E402
 from lnf.baselines.operator_inference import REGULARIZERS, OperatorInference  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -124,8 +125,6 @@ def test_time_varying_loads_enter_as_input_series_held_over_each_step():
 def test_the_study_gives_a_scene_s_input_series_only_where_the_scene_defines_them():
     """A scene whose loads vary in time gives Operator Inference its series; one with constant loads (no
     input_signals of its own) its parameters (n, c), not a held series whose steps would repeat each input."""
-    from types import SimpleNamespace
-
     from experiments.operator_inference import split_controls
     from lnf.scenes import ElasticCantilever, Scene
 
@@ -133,16 +132,9 @@ def test_the_study_gives_a_scene_s_input_series_only_where_the_scene_defines_the
         def controls(self, states):
             return states[:, -1:]
 
-    from lnf.dataset import TrajectorySplit
-
-    def stand_in(**arrays):  # the parts of a TrajectorySplit that split_controls reads
-        split = SimpleNamespace(**arrays)
-        split.loads = lambda scene: TrajectorySplit.loads(split, scene)
-        return split
-
-    split = stand_in(controls=None, states=np.array([[[0.0, 2.0]], [[0.0, -1.0]]]), times=np.arange(5) * 0.1)
+    split = split_stand_in(controls=None, states=np.array([[[0.0, 2.0]], [[0.0, -1.0]]]), times=np.arange(5) * 0.1)
     np.testing.assert_array_equal(split_controls(ConstantLoads.__new__(ConstantLoads), split), [[2.0], [-1.0]])
-    stored = stand_in(controls=np.array([[0.5, 0.4]]), states=np.zeros((1, 5, 0)), times=split.times)
+    stored = split_stand_in(controls=np.array([[0.5, 0.4]]), states=np.zeros((1, 5, 0)), times=split.times)
     series = split_controls(ElasticCantilever.__new__(ElasticCantilever), stored)
     np.testing.assert_allclose(series[0, :, 0], 0.5 * np.sin(2 * np.pi * 0.4 * split.times))
 
