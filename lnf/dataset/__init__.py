@@ -2,7 +2,8 @@
 
 Modules: ``format`` (version, keys, attribute names, errors), ``config`` (:class:`DatasetConfig`), ``verify``
 (structure, checksums, finiteness), ``generate`` (simulation and the atomic write), ``reuse``
-(:func:`ensure_dataset`), ``load`` (:func:`load_split`). Every public name is importable from ``lnf.dataset``.
+(:func:`ensure_dataset`), ``load`` (:func:`load_split`): every public name of these is importable from ``lnf.dataset``. ``snapshots``
+(:class:`SnapshotData`, a file as a model learns from it; it imports ``lnf.model``) is imported as ``lnf.dataset.snapshots``.
 
 The file layout (``FORMAT_VERSION`` 2: splits, grids, masks, files from a user's arrays), its checksums and
 manifest, the atomic writes, the disk-space check and the reuse rules are described in docs/data_format.md. Every
