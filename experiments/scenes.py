@@ -52,14 +52,14 @@ from typing import Any, Callable, Optional
 import torch
 
 from experiments import studylib
-from experiments.scene_measurements import (Context, Skipped, black_box, damped, snapshot_data_of, decay,
-                                            experiment_integrator_order, loads, modes, shape, speedup, timed,
-                                            unseen_load, with_controls)
+from experiments.scene_measurements import (Context, Skipped, black_box, damped, decay, experiment_integrator_order,
+                                            loads, modes, shape, snapshot_data_of, speedup, timed, unseen_load,
+                                            with_controls)
 from lnf.evaluation_pipeline import ensure_code_range
 from lnf.model import load
 from lnf.tempfiles import write_json_atomic
 
-__all__ = ["applicable", "snapshot_data_of", "main", "merge", "timed", "unseen_load", "with_controls"]
+__all__ = ["applicable", "main", "merge", "snapshot_data_of", "timed", "unseen_load", "with_controls"]
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -189,9 +189,8 @@ def summary_text(result: dict[str, Any], limit_gib: float, command: str) -> str:
 
 
 def make_dataset(gib: float, data_dir: Path) -> tuple[Path, int]:
-    from lnf.dataset import DatasetConfig, ensure_dataset
+    from lnf.dataset import DatasetConfig, default_path, ensure_dataset
     from lnf.scenes import LiftedPendulum
-    from lnf.dataset import default_path
 
     n_train = max(int(gib * 2 ** 30 / bytes_per_trajectory()), 4)
     scene, cfg = LiftedPendulum(), DatasetConfig(n_train=n_train, **GEN)
