@@ -33,9 +33,9 @@ def monomial_exponents(latent_dim: int, degree: int) -> Tensor:
 
 
 class ClosureLeftItsRange(RuntimeError):
-    """A rollout of the closed dynamics left the range of the codes the closure was fitted on by more than its
-    ``guard_margin`` (raised only while a guard is set: while the closure is refined by shooting, whose search
-    would otherwise pay for rollouts that crawl off the codes, e.g. stiff implicit solves of the exact pullback)."""
+    """A rollout of the closed dynamics left the box of its guard (:meth:`PotentialClosure.set_guard`; raised only
+    while a guard is set: while the closure is refined by shooting, whose search would otherwise pay for rollouts
+    that crawl off the codes, e.g. stiff implicit solves of the exact pullback, or a table's exact fallback)."""
 
 
 class PotentialClosure(nn.Module):
@@ -59,8 +59,8 @@ class PotentialClosure(nn.Module):
         self.register_buffer("center", torch.zeros(int(latent_dim)))
         self.register_buffer("scale", torch.ones(int(latent_dim)))
         self.register_buffer("coef", torch.zeros(len(self.exponents)))
-        #: None, or a margin (fraction of the fitted codes' span): codes beyond it raise ClosureLeftItsRange
-        self.guard_margin: Optional[float] = None
+        #: None, or the box (low, high) (d,) each beyond which codes raise ClosureLeftItsRange (:meth:`set_guard`)
+        self._guard: Optional[tuple[Tensor, Tensor]] = None
         self._fitted_range: Optional[tuple[Tensor, Tensor]] = None
 
     @property
@@ -112,14 +112,29 @@ class PotentialClosure(nn.Module):
             cols.append(col / self.scale[i].to(x))
         return torch.stack(cols, 1)
 
-    def _check_range(self, q: Tensor) -> None:
-        if self.guard_margin is None or self._fitted_range is None:
+    def set_guard(self, margin: Optional[float], within: Optional[tuple[Any, Any]] = None) -> None:
+        """While set, codes beyond the fitted range widened by `margin` of its span on each side raise
+        :class:`ClosureLeftItsRange`, and, with `within` = (low, high) (d,) each, beyond that box too (a table's
+        box: beyond it a rollout pays for exact jets). `margin` None: no guard."""
+        if margin is None or self._fitted_range is None:
+            self._guard = None
             return
-        low, high = (b.to(q) for b in self._fitted_range)
-        pad = self.guard_margin * (high - low)
-        if bool(((q < low - pad) | (q > high + pad)).any()):
-            raise ClosureLeftItsRange(f"codes left the closure's fitted range {low.tolist()}..{high.tolist()} by more "
-                                      f"than {self.guard_margin:g} of its span")
+        low, high = self._fitted_range
+        pad = float(margin) * (high - low)
+        low, high = low - pad, high + pad
+        if within is not None:
+            low = torch.maximum(low, torch.as_tensor(within[0], dtype=low.dtype, device=low.device))
+            high = torch.minimum(high, torch.as_tensor(within[1], dtype=high.dtype, device=high.device))
+        self._guard = (low, high)
+
+    def _check_range(self, q: Tensor) -> None:
+        if self._guard is None:
+            return
+        low, high = (b.to(q) for b in self._guard)
+        if bool(((q < low) | (q > high)).any()):
+            fitted = [b.tolist() for b in self._fitted_range]
+            raise ClosureLeftItsRange(f"codes left the closure's guard {low.tolist()}..{high.tolist()} (fitted range "
+                                      f"{fitted[0]}..{fitted[1]})")
 
     def fit(self, codes: Tensor, residual: Tensor, regularizer: float) -> float:
         """Fit ∇ΔṼ(q̃) ≈ −r by ridge least squares (λ × the mean diagonal of the normal matrix); codes and residuals

@@ -30,6 +30,7 @@ CLOSURE_VAL_TRAJECTORIES = 8
 SHOOTING_TRAJECTORIES, SHOOTING_TRAJECTORIES_EXACT = 16, 4
 SHOOTING_EVALUATIONS_PER_TERM = 20
 #: a shooting trial whose rollout leaves the training codes by more than this fraction of their span ends there
+#: (and on a table, at the table's box: beyond it every step pays for exact jets)
 SHOOTING_GUARD_MARGIN = 1.0
 
 
@@ -112,7 +113,8 @@ def shoot_closure(model: Any, codes: torch.Tensor, velocities: torch.Tensor, dt:
     trajectories (:data:`SHOOTING_TRAJECTORIES_EXACT` where the dynamics are not a table), under the evaluation's
     `integrator`. A residual fit matches the equations sample by sample; this matches their solutions, so the phase
     after many periods. A rollout that diverges or leaves the training codes by more than
-    :data:`SHOOTING_GUARD_MARGIN` of their span counts as a gap of 10 spreads per sample. Returns the RMS gap (start, end)."""
+    :data:`SHOOTING_GUARD_MARGIN` of their span (or, on a table, its box) counts as a gap of 10 spreads per sample.
+    Returns the RMS gap (start, end)."""
     closure = model.closure
     # the closed dynamics (the model's table where it has one), reading the coefficients as they change:
     # model.dynamics() leaves a zero closure out
@@ -141,15 +143,26 @@ def shoot_closure(model: Any, codes: torch.Tensor, velocities: torch.Tensor, dt:
     theta0 = closure.coef.detach().double().cpu().numpy() / unit
     # a trial whose rollout runs away from the training codes ends there, at a gap of 10 spreads: the search never
     # pays for rollouts that crawl far off the codes (stiff implicit solves of the exact pullback, a table's fallback)
-    closure.guard_margin = SHOOTING_GUARD_MARGIN
+    closure.set_guard(SHOOTING_GUARD_MARGIN, _table_box(dynamics.base, q))
     try:
         start = float(np.sqrt(np.mean(gap(theta0) ** 2)))
         sol = least_squares(gap, theta0, method="lm", x_scale="jac", diff_step=1e-3,
                             max_nfev=SHOOTING_EVALUATIONS_PER_TERM * (len(theta0) + 1))
         end = float(np.sqrt(np.mean(gap(sol.x) ** 2)))
     finally:
-        closure.guard_margin = None
+        closure.set_guard(None)
     if not end < start:  # keep the start where the search found nothing better
         sol.x, end = theta0, start
     closure.coef.copy_(torch.as_tensor(sol.x * unit, dtype=closure.coef.dtype))
     return start, end
+
+
+def _table_box(dynamics: Any, codes: torch.Tensor) -> "tuple[torch.Tensor, torch.Tensor] | None":
+    """The box (low, high) (d,) where `dynamics` is a table (its ``box``), widened to hold the `codes` (…, d) the
+    shooting starts from; None for the exact pullback."""
+    box = getattr(dynamics, "box", None)
+    if box is None:
+        return None
+    flat = codes.reshape(-1, codes.shape[-1]).double()
+    low, high = (torch.as_tensor(b, dtype=torch.float64) for b in box)
+    return torch.minimum(low, flat.amin(0)), torch.maximum(high, flat.amax(0))

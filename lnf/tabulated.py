@@ -201,6 +201,11 @@ class TabulatedDynamics:
                     f"and changes sign {changes} times")
         return msg
 
+    @property
+    def box(self) -> tuple[list[float], list[float]]:
+        """(low, high) (d,) each: the codes the table holds; beyond them rows are evaluated exactly (slowly)."""
+        return self.low, self.high
+
     def __repr__(self) -> str:
         return (f"TabulatedDynamics(d={self.d}, nodes={self.info['table_nodes']}, "
                 f"error={self.info['table_error']:.1e}, box={self.low}..{self.high})")

@@ -78,11 +78,17 @@ def test_while_a_guard_is_set_codes_beyond_the_fitted_range_raise_before_the_bas
     closed = ClosedDynamics(Base(), closure)
     far = torch.tensor([[1.6]], dtype=torch.float64)
     closed.hamiltonian_derivatives(far, far)  # no guard: anywhere
-    closure.guard_margin = 0.25
+    closure.set_guard(0.25)
     closed.hamiltonian_derivatives(torch.tensor([[1.4]], dtype=torch.float64), far)  # within 1 + 0.25 × 2
-    with pytest.raises(ClosureLeftItsRange, match=r"left the closure's fitted range \[-1.0\]..\[1.0\] by more than 0.25"):
+    with pytest.raises(ClosureLeftItsRange, match=r"left the closure's guard \[-1.5\]..\[1.5\] \(fitted range \[-1.0\]..\[1.0\]\)"):
         closed.hamiltonian_derivatives(far, far)
     assert Base.calls == 2
+    closure.set_guard(0.25, within=([-2.0], [1.2]))  # a table's box ends the guard sooner on that side
+    with pytest.raises(ClosureLeftItsRange, match=r"guard \[-1.5\]..\[1.2\]"):
+        closed.hamiltonian_derivatives(torch.tensor([[1.3]], dtype=torch.float64), far)
+    closure.set_guard(None)
+    closed.hamiltonian_derivatives(far, far)
+    assert Base.calls == 3
 
 
 def test_the_closed_pendulum_conserves_its_closed_energy_and_adds_the_closure_force(pendulum):
