@@ -29,6 +29,8 @@ from pathlib import Path
 
 import numpy as np
 
+from lnf.tabulated import force_separates
+
 from experiments import operator_inference as OI
 from experiments import studylib as S
 
@@ -163,9 +165,9 @@ def tabulated_sweeps(study: S.Study) -> None:
     other = "lagrangian" if experiment_dynamics(study) == "tabulated" else "tabulated"
     knob = "exact" if other == "lagrangian" else "tabulated"
     widths = checkpoints(study, "lnf_width")
-    if other == "tabulated" and widths and not study.scene_object().is_conservative:
-        print(f"[{study.name}] no tabulated variant: {study.scene} has damping or loads (the table needs a "
-              "conservative scene)", flush=True)
+    if other == "tabulated" and widths and not force_separates(study.scene_object()):
+        print(f"[{study.name}] no tabulated variant: {study.scene}'s damping or loads do not separate (the table "
+              "needs a conservative scene or GeneralizedForce.separated())", flush=True)
         widths = []
     for width, ckpt in widths:
         label = {"method": "lnf", "knob": knob, "model.width": width, "dynamics": other}

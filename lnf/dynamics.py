@@ -157,6 +157,20 @@ class ReducedDynamics:
             force = force + self._force(t, jet, v)
         return v, force
 
+    def separated_terms(self, q: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """(D̃ (B, d, d), W (B, K), ∂W/∂q̃ (B, K, d)) of a separated force (``force_fn.separated()``, a
+        :class:`lnf.scenes.base.SeparatedForce`): τ̃ = −D̃ q̃̇ + Σ_k a_k ∂W_k/∂q̃, from one first-order jet."""
+        parts = self.force_fn.separated() if self.force_fn is not None else None
+        if parts is None:
+            raise ValueError(f"{type(self.scene).__name__}'s generalized force is not separated (GeneralizedForce."
+                             "separated() gives None)")
+        jet = self._jet(q, order=1)
+        w = self.force_fn.weights.to(q)
+        damping = torch.einsum("n,bnai,bnaj->bij", w * parts.damping.to(q), jet.J, jet.J)
+        shapes = parts.shapes.to(q)
+        return (damping, torch.einsum("n,kna,bna->bk", w, shapes, jet.value),
+                torch.einsum("n,kna,bnai->bki", w, shapes, jet.J))
+
     def mass_matrix(self, q: Tensor) -> Tensor:
         return self._mass(self.jet(q, self.points, order=1))
 

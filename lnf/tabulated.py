@@ -11,8 +11,9 @@ bounded energy error; its distance to the exact pullback is the interpolation er
 measures at check points when it is built and drives below `tol` by doubling the nodes per axis.
 
 Outside the box (a state the training codes never reached) the exact pullback is evaluated for those rows,
-so the result never depends on the box, only the speed does. Conservative scenes only: a scene with
-damping or loads (``scene.generalized_force``) has forces that depend on t and q̃̇ and is not tabulated.
+so the result never depends on the box, only the speed does. A scene with damping or loads is tabulated where its
+force is separated (``GeneralizedForce.separated()``: f = −c(X) u̇ + Σ_k a_k(t) s_k(X)): then the reduced force
+τ̃ = −D̃(q̃) q̃̇ + Σ_k a_k(t) ∂W_k/∂q̃ has parts that depend on q̃ alone, and the table holds D̃ and W_k beside M̃, Ṽ.
 Shapes: q̃, q̃̇, p̃ (B, d).
 """
 from __future__ import annotations
@@ -35,6 +36,19 @@ log = logging.getLogger(__name__)
 
 #: the table's box: the training codes' range widened by this fraction of its span on each side (``dynamics.margin``)
 TABLE_MARGIN = 0.25
+
+
+def force_separates(scene: Any) -> bool:
+    """Whether `scene`'s forces let a table hold its reduced dynamics: none (conservative), or a generalized force
+    whose ``separated()`` gives a :class:`lnf.scenes.base.SeparatedForce`."""
+    if scene.is_conservative:
+        return True
+    from lnf.quadrature import Quadrature
+
+    centre = torch.tensor([[(lo + hi) / 2 for lo, hi in scene.bounds]], dtype=torch.float64)
+    force = scene.generalized_force(Quadrature(centre, torch.ones(1, dtype=torch.float64)))
+    separate = getattr(force, "separated", None)
+    return force is None or (separate is not None and separate() is not None)
 
 
 def _symmetric_pairs(d: int) -> list[tuple[int, int]]:
@@ -105,10 +119,11 @@ class TabulatedDynamics:
 
     Args:
         exact: the :class:`ReducedDynamics` to tabulate (its jet, scene and quadrature); evaluated off the box.
+            A scene with damping or loads needs a separated force (:class:`lnf.scenes.base.SeparatedForce`).
         builder: the same dynamics in the precision the table is built from (default `exact`; a float64
             copy keeps the derivatives of the interpolant clean of float32 rounding).
         low, high: the box of codes (d,) each, e.g. the training codes' range widened by a margin.
-        tol: target relative interpolation error of M̃ and of g̃ = ∂Ṽ/∂q̃ at check points (relative to their
+        tol: target relative interpolation error of M̃ and of g̃ = ∂Ṽ/∂q̃ (and of a force's D̃ and ∂W/∂q̃) at check points (relative to their
             largest magnitude on the box), floored at 10 rounding units of the rollout's dtype (1.2e-6 for
             float32); nodes per axis double from `min_nodes` until it is met.
         min_nodes, max_nodes: nodes per axis (the table holds nodes^d evaluations of the exact pullback).
@@ -124,9 +139,12 @@ class TabulatedDynamics:
     def __init__(self, exact: ReducedDynamics, low: Sequence[float], high: Sequence[float], tol: float = 1e-7,
                  min_nodes: int = 16, max_nodes: int = 256, max_table_points: int = 65536, chunk: int = 256,
                  builder: Optional[ReducedDynamics] = None) -> None:
-        if exact.force_fn is not None:
-            raise ValueError(f"dynamics=tabulated needs a conservative scene; {type(exact.scene).__name__} has "
-                             "damping or external loads (t- and q̃̇-dependent forces). Use dynamics=lagrangian")
+        separate = getattr(exact.force_fn, "separated", None)  # a force of GeneralizedForce's interface says
+        self.separated = separate() if separate is not None else None
+        if exact.force_fn is not None and self.separated is None:
+            raise ValueError(f"dynamics=tabulated needs a conservative scene or a separated force; "
+                             f"{type(exact.scene).__name__}'s damping or loads ({type(exact.force_fn).__name__}) do not "
+                             "say how they separate (GeneralizedForce.separated() gives None). Use dynamics=lagrangian")
         low_t = torch.as_tensor(low, dtype=torch.float64).flatten()
         high_t = torch.as_tensor(high, dtype=torch.float64).flatten()
         if not (torch.isfinite(low_t).all() and torch.isfinite(high_t).all()):
@@ -145,12 +163,18 @@ class TabulatedDynamics:
                              f"pullback evaluations (> dynamics.max_table_points = {max_table_points}); "
                              "use dynamics=lagrangian for this model")
         self.chunk = int(chunk)
-        self.controls: Optional[Tensor] = None  # conservative: no loads (kept for the rollout interface)
+        self.controls: Optional[Tensor] = None  # per-trajectory load parameters (B, c) of a separated force
         ref = exact.density_weights
         self.dtype, self.device = ref.dtype, ref.device  # of the rollout
         build_dtype = self.builder.density_weights.dtype
         self.low, self.high = low_t.tolist(), high_t.tolist()
         self.pairs = _symmetric_pairs(self.d)
+        m = len(self.pairs)
+        loads = 0 if self.separated is None else int(self.separated.shapes.shape[0])
+        #: the table's channels: M̃'s upper triangle (m), Ṽ, then for a separated force D̃'s upper triangle and W_k
+        self.channels = m + 1 + (0 if self.separated is None else m + loads)
+        self._damping = slice(m + 1, 2 * m + 1)
+        self._loads = slice(2 * m + 1, 2 * m + 1 + loads)
         channel = {pair: c for c, pair in enumerate(self.pairs)}
         self.symmetric_index = torch.tensor([channel[(min(a, b), max(a, b))] for a in range(self.d) for b in range(self.d)],
                                             device=self.device)  # M̃_ab's channel, row-major (d²,)
@@ -172,7 +196,7 @@ class TabulatedDynamics:
         if self.d == 1 and not (self._last_nodes[..., 0] > 0).all():  # M̃ at the nodes
             raise ValueError(f"M̃ is not positive on the table box {self.low}..{self.high} (φ is not an immersion "
                              "there); use dynamics=lagrangian or a smaller dynamics.margin")
-        if self.d == 1:  # the scalar fast path: columns (M̃, Ṽ, ½ ∂M̃/∂q̃, ∂Ṽ/∂q̃), scaled coordinate x = (q̃ − c) / h
+        if self.d == 1 and self.separated is None:  # the scalar fast path: columns (M̃, Ṽ, ½ ∂M̃/∂q̃, ∂Ṽ/∂q̃), x = (q̃ − c) / h
             coef = self.table.coef.reshape(n, 4)
             self._coef1 = torch.stack([coef[:, 0], coef[:, 1], 0.5 * coef[:, 2], coef[:, 3]], -1)
             self._center1, self._inv_half1 = float(self.table.center[0]), 1.0 / float(self.table.half[0])
@@ -212,13 +236,20 @@ class TabulatedDynamics:
 
     # -- building ------------------------------------------------------------------------------------
     def _exact_channels(self, q: Tensor, dynamics: ReducedDynamics) -> Tensor:
-        """(B, c) of the exact pullback: the upper triangle of M̃, then Ṽ, then g̃."""
+        """(B, c + d + K d) of the exact pullback: the table's channels (M̃'s upper triangle, Ṽ, for a separated
+        force D̃'s upper triangle and W_k), then g̃, then ∂W_k/∂q̃ (row-major (K, d))."""
         out = []
+        a, b = zip(*self.pairs)
         with torch.no_grad():
             for i in range(0, q.shape[0], self.chunk):
-                mass, potential, gravity = dynamics.static_terms(q[i:i + self.chunk])
-                mass = torch.stack([mass[:, a, b] for a, b in self.pairs], -1)
-                out.append(torch.cat([mass, potential[:, None], gravity], -1))
+                rows = q[i:i + self.chunk]
+                mass, potential, gravity = dynamics.static_terms(rows)
+                parts, tail = [mass[:, a, b], potential[:, None]], [gravity]
+                if self.separated is not None:
+                    damping, work, work_grad = dynamics.separated_terms(rows)
+                    parts += [damping[:, a, b], work]
+                    tail.append(work_grad.reshape(len(rows), -1))
+                out.append(torch.cat(parts + tail, -1))
         return torch.cat(out, 0)
 
     def _node_values(self, n: int) -> np.ndarray:
@@ -226,7 +257,7 @@ class TabulatedDynamics:
         axes = [lo + (hi - lo) * (x + 1) / 2 for lo, hi in zip(self.low, self.high)]
         mesh = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, self.d)
         nodes = torch.as_tensor(mesh, dtype=self.builder.density_weights.dtype, device=self.device)
-        values = self._exact_channels(nodes, self.builder)[:, : len(self.pairs) + 1]
+        values = self._exact_channels(nodes, self.builder)[:, : self.channels]
         self._last_nodes = values.double().cpu().numpy().reshape(*([n] * self.d), -1)
         return self._last_nodes
 
@@ -237,14 +268,21 @@ class TabulatedDynamics:
         return (lo + (hi - lo) * u).to(dtype).to(self.device)
 
     def _relative_error(self, q: Tensor, exact: Tensor) -> float:
-        """max over M̃ entries and g̃ of |table − exact| / max|exact| at the check points (in the table's float64)."""
-        m = len(self.pairs)
+        """max over M̃ entries and g̃ (and a force's D̃ entries and ∂W_k/∂q̃) of |table − exact| / max|exact| at the
+        check points (in the table's float64)."""
+        m, c = len(self.pairs), self.channels
+
+        def error(table: Tensor, truth: Tensor, floor: float = 1e-300) -> Tensor:
+            return (table - truth).abs().max() / truth.abs().max().clamp_min(floor)
+
         out = self.table.evaluate(q.double(), self.table.coef64)
-        mass_err = (out[:, 0, :m] - exact[:, :m]).abs().max() / exact[:, :m].abs().max().clamp_min(1e-300)
-        grad = out[:, 1:, m]  # ∂Ṽ/∂q_i (B, d)
-        g_exact = exact[:, m + 1:]
-        grad_err = (grad - g_exact).abs().max() / g_exact.abs().max().clamp_min(1e-20)  # a flat Ṽ (|g̃| ≲ 1e-20): absolute
-        return float(max(mass_err, grad_err))
+        # a flat Ṽ (|g̃| ≲ 1e-20): absolute
+        errors = [error(out[:, 0, :m], exact[:, :m]), error(out[:, 1:, m], exact[:, c:c + self.d], 1e-20)]
+        if self.separated is not None:
+            work_grad = exact[:, c + self.d:].reshape(len(q), -1, self.d)  # (B, K, d)
+            errors += [error(out[:, 0, self._damping], exact[:, self._damping], 1e-20),
+                       error(out[:, 1:, self._loads].transpose(1, 2), work_grad, 1e-20)]
+        return float(max(errors))
 
     # -- evaluation ----------------------------------------------------------------------------------
     def _raw(self, q: Tensor) -> Tensor:
@@ -270,21 +308,32 @@ class TabulatedDynamics:
         # and this runs several times per step (through evaluate_scaled it measured 32 µs instead of 23 µs)
         return torch.cos(torch.acos(x) * self._k1) @ self._coef1
 
-    def _parts(self, q: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        """(M̃ (B, d, d), ∂M̃/∂q̃_k (B, k, d, d), Ṽ (B,), ∂Ṽ/∂q̃ (B, d))."""
-        out = self._raw(q)
+    def _parts(self, q: Tensor, out: Optional[Tensor] = None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """(M̃ (B, d, d), ∂M̃/∂q̃_k (B, k, d, d), Ṽ (B,), ∂Ṽ/∂q̃ (B, d)), from the table's `out` where given."""
+        out = self._raw(q) if out is None else out
         m = len(self.pairs)
         full = out[:, :, self.symmetric_index].reshape(*out.shape[:2], self.d, self.d)
         return full[:, 0], full[:, 1:], out[:, 0, m], out[:, 1:, m]
+
+    def _force(self, out: Tensor, v: Tensor, t: float) -> Tensor:
+        """τ̃ = −D̃ q̃̇ + Σ_k a_k(t) ∂W_k/∂q̃ (B, d) of a separated force, from the table's `out` at q̃."""
+        damping = out[:, 0, self._damping.start + self.symmetric_index].reshape(-1, self.d, self.d)
+        amplitudes = self.separated.amplitudes(t, self.controls, v.shape[0]).to(v)  # (B, K)
+        return (-torch.einsum("bij,bj->bi", damping, v)
+                + torch.einsum("bik,bk->bi", out[:, 1:, self._loads], amplitudes))
 
     def _exact_parts(self, q: Tensor) -> Tensor:
         """The table's layout (B, 1 + d, c) from the exact pullback (its values and ∂M̃/∂q̃ from
         :meth:`ReducedDynamics.static_terms_with_mass_slope`)."""
         with torch.no_grad():
             mass, potential, gravity, slope = self.exact.static_terms_with_mass_slope(q)
-        a, b = zip(*self.pairs)
-        value = torch.cat([mass[:, a, b], potential[:, None]], -1)
-        rows = torch.cat([slope[:, :, a, b], gravity[:, :, None]], -1)  # (B, d, m + 1)
+            a, b = zip(*self.pairs)
+            value = torch.cat([mass[:, a, b], potential[:, None]], -1)
+            rows = torch.cat([slope[:, :, a, b], gravity[:, :, None]], -1)  # (B, d, m + 1)
+            if self.separated is not None:  # D̃'s slope is never read: zeros
+                damping, work, work_grad = self.exact.separated_terms(q)
+                value = torch.cat([value, damping[:, a, b], work], -1)
+                rows = torch.cat([rows, torch.zeros_like(rows[..., :len(a)]), work_grad.transpose(1, 2)], -1)
         return torch.cat([value[:, None], rows], 1)
 
     def _solve(self, mass: Tensor, rhs: Tensor) -> Tensor:
@@ -307,7 +356,12 @@ class TabulatedDynamics:
         return self._solve(self.mass_matrix(q), p)
 
     def acceleration(self, q: Tensor, v: Tensor, t: float = 0.0, extra_force: Optional[Tensor] = None) -> Tensor:
-        """q̃̈ = M̃⁻¹(−c̃ − g̃ [+ `extra_force` (B, d)]), c̃_i = Σ_jk (∂_k M̃_ij − ½ ∂_i M̃_jk) q̃̇_j q̃̇_k (B, d)."""
+        """q̃̈ = M̃⁻¹(−c̃ − g̃ [+ τ̃] [+ `extra_force` (B, d)]), c̃_i = Σ_jk (∂_k M̃_ij − ½ ∂_i M̃_jk) q̃̇_j q̃̇_k (B, d)."""
+        if self.separated is not None:
+            out = self._raw(q)
+            force = self._force(out, v, t)
+            extra_force = force if extra_force is None else force + extra_force
+            return self._general_acceleration(q, v, extra_force, out)
         if self.d == 1:  # q̃̈ = −(½ M̃' q̃̇² + Ṽ') / M̃
             cols = self._scalar(q)
             if cols is not None:
@@ -316,13 +370,23 @@ class TabulatedDynamics:
             out = self._raw(q)
             mass, rhs = out[:, :1, :1], -0.5 * out[:, 1, :1] * v * v - out[:, 1, 1:]
         else:
-            mass, dmass, _, grad = self._parts(q)
-            dm_v = torch.einsum("bkij,bj->bik", dmass, v)  # Σ_j ∂_k M̃_ij v_j
-            rhs = -torch.einsum("bik,bk->bi", dm_v, v) + 0.5 * torch.einsum("bijk,bj,bk->bi", dmass, v, v) - grad
+            return self._general_acceleration(q, v, extra_force)
+        return self._solve(mass, rhs if extra_force is None else rhs + extra_force)
+
+    def _general_acceleration(self, q: Tensor, v: Tensor, extra_force: Optional[Tensor],
+                              out: Optional[Tensor] = None) -> Tensor:
+        mass, dmass, _, grad = self._parts(q, out)
+        dm_v = torch.einsum("bkij,bj->bik", dmass, v)  # Σ_j ∂_k M̃_ij v_j
+        rhs = -torch.einsum("bik,bk->bi", dm_v, v) + 0.5 * torch.einsum("bijk,bj,bk->bi", dmass, v, v) - grad
         return self._solve(mass, rhs if extra_force is None else rhs + extra_force)
 
     def hamiltonian_derivatives(self, q: Tensor, p: Tensor, t: float = 0.0) -> tuple[Tensor, Tensor]:
-        """(q̃̇ = M̃⁻¹p̃, −∂H/∂q̃ = ½ q̃̇ᵀ ∂_k M̃ q̃̇ − ∂_k Ṽ) (B, d) each."""
+        """(q̃̇ = M̃⁻¹p̃, −∂H/∂q̃ [+ τ̃] = ½ q̃̇ᵀ ∂_k M̃ q̃̇ − ∂_k Ṽ [+ τ̃]) (B, d) each."""
+        if self.separated is not None:
+            out = self._raw(q)
+            mass, dmass, _, grad = self._parts(q, out)
+            v = self._solve(mass, p)
+            return v, 0.5 * torch.einsum("bkij,bi,bj->bk", dmass, v, v) - grad + self._force(out, v, t)
         if self.d == 1:
             cols = self._scalar(q)
             if cols is not None:

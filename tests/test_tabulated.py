@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from lnf.integrators import get_integrator
-from lnf.tabulated import ChebyshevTable, TabulatedDynamics
+from lnf.tabulated import ChebyshevTable, TabulatedDynamics, force_separates
 from test_dynamics import _nonlinear_setup, _pendulum_dynamics
 
 
@@ -88,6 +88,44 @@ def test_tabulated_refuses_forced_scenes_unbounded_boxes_and_large_tables():
     exact.force_fn = object()  # a scene with damping / loads
     with pytest.raises(ValueError, match="conservative"):
         TabulatedDynamics(exact, [0.0, 0.0], [1.0, 1.0])
+
+
+def test_a_separated_force_is_tabulated_beside_the_mass_and_potential():
+    """A damped, loaded scene (the actuated cantilever's force −α ρ u̇ + A sin(2π f t) s(X) ê) tabulates: the table's
+    accelerations and Hamiltonian forces equal the exact pullback's, on the box and off it, with and without loads."""
+    from lnf.scenes.elastic import CantileverLoad
+
+    _, exact, _ = _nonlinear_setup()
+    exact.force_fn = CantileverLoad(exact.quadrature.weights, exact.points[:, 0] ** 2, [1.0], rho=1.3, damping=0.7)
+    tab = TabulatedDynamics(exact, [-1.0, -1.0], [1.5, 1.0], tol=1e-10)
+    assert tab.info["table_error"] <= 1e-10 and tab.channels == 3 + 1 + 3 + 1  # M̃, Ṽ, D̃, W
+    q = torch.tensor([[0.3, -0.7], [1.1, 0.2], [2.0, 0.9]], dtype=torch.float64)  # the last row off the box
+    v = torch.tensor([[0.5, 1.5], [-2.0, 0.7], [0.1, -0.3]], dtype=torch.float64)
+    loads = torch.tensor([[0.8, 1.5], [2.0, 0.3], [-1.0, 2.0]], dtype=torch.float64)  # (A, f) per row
+    for controls in (None, loads):
+        exact.controls = tab.controls = controls
+        for t in (0.0, 0.37):
+            force = exact.terms(q, v, t).force
+            assert force.abs().max() > 0.1  # the force matters
+            torch.testing.assert_close(tab.acceleration(q, v, t), exact.acceleration(q, v, t), atol=1e-8, rtol=1e-8)
+            for a, b in zip(tab.hamiltonian_derivatives(q, v, t), exact.hamiltonian_derivatives(q, v, t)):
+                torch.testing.assert_close(a, b, atol=1e-8, rtol=1e-8)
+    assert tab.fallback_rows > 0
+
+
+def test_force_separates_says_which_forced_scenes_a_table_holds():
+    from lnf.scenes.base import GeneralizedForce
+    from lnf.scenes.elastic import ElasticCantilever
+
+    class Unseparated:  # a forced scene whose GeneralizedForce says nothing of its form
+        is_conservative, bounds = False, [[0.0, 1.0]]
+
+        def generalized_force(self, quadrature):
+            return GeneralizedForce(quadrature.weights)
+
+    assert force_separates(ElasticCantilever())  # conservative
+    assert force_separates(ElasticCantilever(damping=0.2, load_amplitude_range=(0.1, 0.3)))
+    assert not force_separates(Unseparated())
 
 
 def test_model_tracks_training_codes_and_tabulates_on_their_range(pendulum, tmp_path):

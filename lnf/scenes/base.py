@@ -83,6 +83,31 @@ class GeneralizedForce:
     def field_force(self, t: float, q: Tensor, v: Tensor, controls: Optional[Tensor]) -> Tensor:  # pragma: no cover
         raise NotImplementedError
 
+    def separated(self) -> Optional["SeparatedForce"]:
+        """The force as f = −c(X) u̇ + Σ_k a_k(t) s_k(X) (:class:`SeparatedForce`), if it has that form: its reduced
+        parts are then functions of q̃ alone, which a table holds (``dynamics=tabulated``). None (the default): not
+        separable; such a scene rolls out on the exact pullback."""
+        return None
+
+
+@dataclass(frozen=True)
+class SeparatedForce:
+    """A force density f = −c(X) u̇ + Σ_k a_k(t, controls) s_k(X) at the quadrature points of its
+    :class:`GeneralizedForce`: a velocity-proportional damping and loads of fixed shape with time-varying amplitudes.
+
+    Attributes:
+        damping: c_j ≥ 0 (N,) [kg/(m³ s)]: the damping density (e.g. α ρ for mass-proportional damping).
+        shapes: s_k (K, N, A): the loads' shapes (force per unit reference volume per unit amplitude).
+        amplitudes: (t, controls (B, c) or None, batch B) → a_k (B, K): zeros where there are no controls.
+
+    The reduced force is then τ̃ = −D̃(q̃) q̃̇ + Σ_k a_k ∂W_k/∂q̃ with D̃ = Σ_j w_j c_j J_jᵀJ_j and
+    W_k = Σ_j w_j s_kj · φ_j.
+    """
+
+    damping: Tensor
+    shapes: Tensor
+    amplitudes: Callable[[float, Optional[Tensor], int], Tensor]
+
 
 @dataclass(frozen=True)
 class StabilityCases:

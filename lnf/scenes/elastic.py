@@ -41,7 +41,8 @@ from lnf.fem.body import ElasticBody, box_mesh
 from lnf.fem.materials import MATERIALS, HyperelasticMaterial, get_material
 from lnf.fem.time_stepping import implicit_midpoint, verlet
 from lnf.quadrature import Quadrature
-from lnf.scenes.base import DiscretePotential, GeneralizedForce, Scene, StabilityCases, check_positive, check_range
+from lnf.scenes.base import (DiscretePotential, GeneralizedForce, Scene, SeparatedForce, StabilityCases, check_positive,
+                             check_range)
 
 log = logging.getLogger("lnf.scenes.elastic")
 
@@ -94,6 +95,17 @@ class CantileverLoad(GeneralizedForce):
             shape = self.profile.to(v)[:, None] * self.direction.to(v)[None, :]  # (N, d)
             force = force + amplitude[:, None, None] * shape[None]
         return force
+
+    def separated(self) -> SeparatedForce:
+        """−α ρ u̇ and one load of shape s(X) ê with amplitude A sin(2π f t)."""
+        shape = self.profile[:, None] * self.direction.to(self.profile)[None, :]  # (N, d)
+
+        def amplitudes(t: float, controls: Optional[Tensor], batch: int) -> Tensor:
+            if controls is None:
+                return torch.zeros(batch, 1, dtype=shape.dtype, device=shape.device)
+            return (controls[:, 0] * torch.sin(2 * math.pi * controls[:, 1] * t))[:, None]
+
+        return SeparatedForce(torch.full_like(self.profile, self.damping * self.rho), shape[None], amplitudes)
 
 
 class ElasticCantilever(Scene):
