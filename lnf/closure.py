@@ -35,7 +35,7 @@ def monomial_exponents(latent_dim: int, degree: int) -> Tensor:
 class ClosureLeftItsRange(RuntimeError):
     """A rollout of the closed dynamics left the box of its guard (:meth:`PotentialClosure.set_guard`; raised only
     while a guard is set: while the closure is refined by shooting, whose search would otherwise pay for rollouts
-    that crawl off the codes, e.g. stiff implicit solves of the exact pullback, or a table's exact fallback)."""
+    that crawl off the codes, e.g. stiff implicit solves of the exact pullback)."""
 
 
 class PotentialClosure(nn.Module):
@@ -112,20 +112,15 @@ class PotentialClosure(nn.Module):
             cols.append(col / self.scale[i].to(x))
         return torch.stack(cols, 1)
 
-    def set_guard(self, margin: Optional[float], within: Optional[tuple[Any, Any]] = None) -> None:
+    def set_guard(self, margin: Optional[float]) -> None:
         """While set, codes beyond the fitted range widened by `margin` of its span on each side raise
-        :class:`ClosureLeftItsRange`, and, with `within` = (low, high) (d,) each, beyond that box too (a table's
-        box: beyond it a rollout pays for exact jets). `margin` None: no guard."""
+        :class:`ClosureLeftItsRange`. `margin` None: no guard."""
         if margin is None or self._fitted_range is None:
             self._guard = None
             return
         low, high = self._fitted_range
         pad = float(margin) * (high - low)
-        low, high = low - pad, high + pad
-        if within is not None:
-            low = torch.maximum(low, torch.as_tensor(within[0], dtype=low.dtype, device=low.device))
-            high = torch.minimum(high, torch.as_tensor(within[1], dtype=high.dtype, device=high.device))
-        self._guard = (low, high)
+        self._guard = (low - pad, high + pad)
 
     def _check_range(self, q: Tensor) -> None:
         if self._guard is None:

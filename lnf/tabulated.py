@@ -18,10 +18,11 @@ Shapes: q̃, q̃̇, p̃ (B, d).
 """
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import time
-from typing import Any, Optional, Sequence
+from typing import Any, Iterator, Optional, Sequence
 
 import numpy as np
 import torch
@@ -178,6 +179,7 @@ class TabulatedDynamics:
         channel = {pair: c for c, pair in enumerate(self.pairs)}
         self.symmetric_index = torch.tensor([channel[(min(a, b), max(a, b))] for a in range(self.d) for b in range(self.d)],
                                             device=self.device)  # M̃_ab's channel, row-major (d²,)
+        self._continue_off_box = False  # continued_off_box(): rows off the box read its edge, not the exact pullback
         self.fallback_rows = 0  # rows evaluated exactly because they left the box (diagnostics)
         self.evaluated_rows = 0
         start = time.perf_counter()
@@ -225,10 +227,16 @@ class TabulatedDynamics:
                     f"and changes sign {changes} times")
         return msg
 
-    @property
-    def box(self) -> tuple[list[float], list[float]]:
-        """(low, high) (d,) each: the codes the table holds; beyond them rows are evaluated exactly (slowly)."""
-        return self.low, self.high
+    @contextlib.contextmanager
+    def continued_off_box(self) -> Iterator[None]:
+        """Within it, rows off the box read the table at the nearest point of the box (M̃, its slope and ∂Ṽ/∂q̃ held
+        there: forces continue constant) instead of the exact pullback: no jet, and wrong off the box. For searches
+        that try many rollouts and only need them to be bad there (the closure's shooting), not for results."""
+        self._continue_off_box = True
+        try:
+            yield
+        finally:
+            self._continue_off_box = False
 
     def __repr__(self) -> str:
         return (f"TabulatedDynamics(d={self.d}, nodes={self.info['table_nodes']}, "
@@ -291,7 +299,7 @@ class TabulatedDynamics:
         out = self.table.evaluate_scaled(x, self.table.coef)
         outside = (x.abs() > 1.0).any(-1)
         self.evaluated_rows += q.shape[0]
-        if bool(outside.any()):
+        if bool(outside.any()) and not self._continue_off_box:
             rows = outside.nonzero().flatten()
             self.fallback_rows += int(rows.numel())
             out = out.index_copy(0, rows, self._exact_parts(q[rows]).to(out))

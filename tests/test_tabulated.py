@@ -62,6 +62,20 @@ def test_rows_off_the_box_use_the_exact_pullback():
                                atol=1e-8, rtol=1e-8)
 
 
+def test_within_continued_off_box_rows_off_the_box_read_its_edge_without_a_jet():
+    """The closure's shooting tries rollouts that leave the box: there they read the table's edge (no jet)."""
+    _, exact, _ = _nonlinear_setup()
+    tab = TabulatedDynamics(exact, [-0.2, -0.2], [0.2, 0.2])
+    off, edge = (torch.tensor([[1.1, -0.1]], dtype=torch.float64), torch.tensor([[0.2, -0.1]], dtype=torch.float64))
+    v = torch.tensor([[0.5, 1.5]], dtype=torch.float64)
+    with tab.continued_off_box():
+        torch.testing.assert_close(tab.acceleration(off, v), tab.acceleration(edge, v))
+        torch.testing.assert_close(tab.mass_matrix(off), tab.mass_matrix(edge))
+    assert tab.fallback_rows == 0
+    torch.testing.assert_close(tab.acceleration(off, v), exact.acceleration(off, v), atol=1e-8, rtol=1e-8)
+    assert tab.fallback_rows == 1
+
+
 def test_tabulated_pendulum_rollout_follows_the_exact_one_and_conserves_its_energy(pendulum):
     exact = _pendulum_dynamics(pendulum)
     tab = TabulatedDynamics(exact, [-2.0], [2.0])
