@@ -32,12 +32,6 @@ def monomial_exponents(latent_dim: int, degree: int) -> Tensor:
     return torch.tensor(rows, dtype=torch.long)
 
 
-class ClosureLeftItsRange(RuntimeError):
-    """A rollout of the closed dynamics left the box of its guard (:meth:`PotentialClosure.set_guard`; raised only
-    while a guard is set: while the closure is refined by shooting, whose search would otherwise pay for rollouts
-    that crawl off the codes, e.g. stiff implicit solves of the exact pullback)."""
-
-
 class PotentialClosure(nn.Module):
     """ΔṼ(q̃) = Σ_p θ_p Π_i x_i^{E_pi}, x = (q̃ − center)/scale, for a d-dimensional code; all zeros until fitted.
 
@@ -59,7 +53,7 @@ class PotentialClosure(nn.Module):
         self.register_buffer("center", torch.zeros(int(latent_dim)))
         self.register_buffer("scale", torch.ones(int(latent_dim)))
         self.register_buffer("coef", torch.zeros(len(self.exponents)))
-        #: None, or the box (low, high) (d,) each beyond which codes raise ClosureLeftItsRange (:meth:`set_guard`)
+        #: None, or the box (low, high) (d,) each beyond which the closure's force is NaN (:meth:`set_guard`)
         self._guard: Optional[tuple[Tensor, Tensor]] = None
         self._fitted_range: Optional[tuple[Tensor, Tensor]] = None
 
@@ -99,8 +93,8 @@ class PotentialClosure(nn.Module):
 
     def gradient(self, q: Tensor) -> Tensor:
         """∇ΔṼ (B, d) at codes (B, d), the continuation's beyond the box: the polynomial's gradient at the nearest
-        point of the box, plus, along each variable still inside it, the change of that gradient across the gap."""
-        self._check_range(q)
+        point of the box, plus, along each variable still inside it, the change of that gradient across the gap
+        (NaN beyond a guard, :meth:`set_guard`)."""
         x, inside = self._scaled(q)
         coef, gap = self.coef.to(x), x - inside
         cols = []
@@ -110,11 +104,13 @@ class PotentialClosure(nn.Module):
                 if j != i:  # gap_i = 0 where variable i is free; ∂²/∂x_i∂x_j × gap_j there (zero inside the box)
                     col = col + (self._derivatives(inside, self._unit(i, j)) @ coef) * gap[:, j] * (gap[:, i] == 0)
             cols.append(col / self.scale[i].to(x))
-        return torch.stack(cols, 1)
+        return self._guarded(q, torch.stack(cols, 1))
 
     def set_guard(self, margin: Optional[float]) -> None:
-        """While set, codes beyond the fitted range widened by `margin` of its span on each side raise
-        :class:`ClosureLeftItsRange`. `margin` None: no guard."""
+        """While set, the closure's force (:meth:`gradient`) is NaN at codes beyond the fitted range widened by
+        `margin` of its span on each side: a rollout there ends as diverged, row by row (while the closure is refined
+        by shooting, whose search would otherwise pay for trials that crawl off the codes, e.g. stiff implicit solves
+        of the exact pullback). `margin` None: no guard."""
         if margin is None or self._fitted_range is None:
             self._guard = None
             return
@@ -122,14 +118,12 @@ class PotentialClosure(nn.Module):
         pad = float(margin) * (high - low)
         self._guard = (low - pad, high + pad)
 
-    def _check_range(self, q: Tensor) -> None:
+    def _guarded(self, q: Tensor, force: Tensor) -> Tensor:
         if self._guard is None:
-            return
+            return force
         low, high = (b.to(q) for b in self._guard)
-        if bool(((q < low) | (q > high)).any()):
-            fitted = [b.tolist() for b in self._fitted_range]
-            raise ClosureLeftItsRange(f"codes left the closure's guard {low.tolist()}..{high.tolist()} (fitted range "
-                                      f"{fitted[0]}..{fitted[1]})")
+        outside = ((q < low) | (q > high)).any(-1, keepdim=True)
+        return torch.where(outside, torch.full_like(force, float("nan")), force)
 
     def fit(self, codes: Tensor, residual: Tensor, regularizer: float) -> float:
         """Fit ∇ΔṼ(q̃) ≈ −r by ridge least squares (λ × the mean diagonal of the normal matrix); codes and residuals

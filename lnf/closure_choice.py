@@ -17,7 +17,7 @@ import torch
 from scipy.optimize import least_squares
 
 from lnf.baselines.latent_mlp import latent_trajectories
-from lnf.closure import ClosedDynamics, ClosureLeftItsRange, equation_residual
+from lnf.closure import ClosedDynamics, equation_residual
 from lnf.evaluation_pipeline import EvaluationData, evaluate_model
 
 log = logging.getLogger("lnf.closure")
@@ -113,7 +113,8 @@ def shoot_closure(model: Any, codes: torch.Tensor, velocities: torch.Tensor, dt:
     trajectories (:data:`SHOOTING_TRAJECTORIES_EXACT` where the dynamics are not a table), under the evaluation's
     `integrator`. A residual fit matches the equations sample by sample; this matches their solutions, so the phase
     after many periods. A rollout that diverges or leaves the training codes by more than
-    :data:`SHOOTING_GUARD_MARGIN` of their span counts as a gap of 10 spreads per sample; on a table, trials read its
+    :data:`SHOOTING_GUARD_MARGIN` of their span counts as a gap of 10 spreads per sample from there on (that
+    trajectory only: one that runs off leaves the others' gaps to guide the search); on a table, trials read its
     continuation beyond its box (:meth:`lnf.tabulated.TabulatedDynamics.continued_off_box`), not exact jets.
     Returns the RMS gap (start, end)."""
     closure = model.closure
@@ -133,16 +134,15 @@ def shoot_closure(model: Any, codes: torch.Tensor, velocities: torch.Tensor, dt:
 
     def gap(theta: np.ndarray) -> np.ndarray:
         closure.coef.copy_(torch.as_tensor(theta * unit, dtype=closure.coef.dtype))
-        try:
-            traj = model.rollout(q[:, 0], v[:, 0], dt=dt, steps=q.shape[1] - 1, integrator=integrator,
-                                 on_divergence="mark", dynamics=dynamics, controls=forces)
-        except ClosureLeftItsRange:
-            return np.full(q.numel(), 10.0)
+        traj = model.rollout(q[:, 0], v[:, 0], dt=dt, steps=q.shape[1] - 1, integrator=integrator,
+                             on_divergence="mark", dynamics=dynamics, controls=forces)
         out = ((traj.q - q) / spread).double().cpu().numpy().ravel()
         return np.nan_to_num(out, nan=10.0, posinf=10.0, neginf=-10.0)
 
     theta0 = closure.coef.detach().double().cpu().numpy() / unit
-    # a trial whose rollout runs away from the training codes ends there, at a gap of 10 spreads: the search never
+    # a trial trajectory that runs away from the training codes ends there (the closure's force is NaN past the
+    # guard: diverged, a gap of 10 spreads from then on; before, it ended the whole trial, and on the soft body at
+    # d = 2 every trial of the search then had the same gap, 10, and it never moved): the search never
     # pays for rollouts that crawl far off the codes (stiff implicit solves of the exact pullback). On a table, trials
     # past its box read the table's continuation, not exact jets (each step of those cost a jet: on the soft body at
     # d = 2 a search sat 80 min there); ending them at the box instead made the soft body's search stall at d = 1
