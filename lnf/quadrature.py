@@ -6,6 +6,7 @@ polynomials of degree 2n−1 per axis exactly; uniform midpoint grids converge o
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import Any, Sequence
 
@@ -39,7 +40,16 @@ class Quadrature:
         return self.points.shape[0]
 
     def to(self, *args, **kwargs) -> "Quadrature":
-        return Quadrature(self.points.to(*args, **kwargs), self.weights.to(*args, **kwargs))
+        """The same rule (of the same kind) with points and weights cast or moved."""
+        return dataclasses.replace(self, points=self.points.to(*args, **kwargs), weights=self.weights.to(*args, **kwargs))
+
+
+@dataclass(frozen=True)
+class NodeQuadrature(Quadrature):
+    """The nodes X_a (N, dim_B) of a scene's own mesh, with their lumped volumes ∫ N_a dX (N,) as weights
+    (``scene.nodal_quadrature()``). A scene that receives it pulls back its mesh's own discrete Lagrangian: the
+    lumped kinetic energy ½ Σ_a m_a ‖φ̇(X_a)‖² and the strain energy of the mesh's interpolant of φ(·, X_a), the
+    Lagrangian its full-order reference integrates (``quadrature=mesh_nodes``)."""
 
 
 def _check_bounds(bounds: Bounds) -> np.ndarray:
@@ -186,6 +196,28 @@ class MeshElements(QuadratureRule):
 
     def describe(self) -> str:
         return "mesh_elements"
+
+
+class MeshNodes(QuadratureRule):
+    """The nodes of the scene's own mesh with their lumped volumes (``scene.nodal_quadrature()``, a
+    :class:`NodeQuadrature`): the reduced dynamics pull back the mesh's discrete Lagrangian (docs/method.md §6.1).
+    `order` is accepted and not used (an experiment's Gauss–Legendre order stays in the config when
+    ``quadrature=mesh_nodes`` replaces its rule: the mesh sets the points)."""
+
+    def __init__(self, order: Any = None) -> None:
+        self.unused_order = order
+
+    def build(self, bounds: Bounds) -> Quadrature:
+        raise ValueError("quadrature=mesh_nodes takes its points from the scene's mesh: build it with build_for(scene)")
+
+    def build_for(self, scene: Any) -> Quadrature:
+        if not (hasattr(scene, "provides") and scene.provides("nodal_quadrature")):
+            raise ValueError(f"quadrature=mesh_nodes: scene {getattr(scene, 'name', scene)!r} has no mesh of its own "
+                             "(it defines no nodal_quadrature()); choose quadrature=gauss_legendre")
+        return scene.nodal_quadrature()
+
+    def describe(self) -> str:
+        return "mesh_nodes"
 
 
 class StoredPoints(QuadratureRule):

@@ -66,6 +66,10 @@ def test_every_option_composes_and_instantiates(group, option, tmp_path):
             from lnf.scenes import SoftBody
 
             assert len(obj.build_for(SoftBody(box=(0.5, 0.15, 0.1), cells=(2, 1, 1)))) == 2 * 8
+        elif group == "quadrature" and option == "mesh_nodes":  # the nodes of the scene's own mesh
+            from lnf.scenes import SoftBody
+
+            assert len(obj.build_for(SoftBody(box=(0.5, 0.15, 0.1), cells=(2, 1, 1)))) == 3 * 2 * 2
         elif group == "quadrature":
             assert len(obj.build([[-1, 1], [-1, 1]])) > 0
         assert obj is not None

@@ -9,7 +9,7 @@ import torch
 from scipy.integrate import solve_ivp
 from torch import Tensor
 
-from lnf.quadrature import Quadrature
+from lnf.quadrature import NodeQuadrature, Quadrature
 from lnf.utils import require
 
 
@@ -321,6 +321,11 @@ class Scene:
         mesh: what ``quadrature=mesh`` integrates the pulled-back Lagrangian with."""
         raise self._missing("element_quadrature", "quadrature=mesh needs (the quadrature of the scene's own mesh)")
 
+    def nodal_quadrature(self) -> NodeQuadrature:
+        """The nodes of the scene's own mesh with their lumped volumes (:class:`lnf.quadrature.NodeQuadrature`); the
+        scene's :meth:`potential` on it is the mesh's own discrete strain energy (``quadrature=mesh_nodes``)."""
+        raise self._missing("nodal_quadrature", "quadrature=mesh_nodes needs (the nodes of the scene's own mesh)")
+
     def with_damping(self, rate: float) -> "Scene":
         """A copy of the scene with mass-proportional damping −α ω0 q̇ of `rate` α [1/s] (its full-order reference
         and its :meth:`generalized_force` both damped). Pulled back through any embedding φ this force is exactly
@@ -383,7 +388,7 @@ class Scene:
 
 OPTIONAL_PARTS = ("simulate", "sample_initial_states", "fields", "true_energy_parts", "kinetic_correction",
                   "generalized_force", "controls", "clamp_factor", "field_gradients", "released_at_rest",
-                  "observation_points", "element_quadrature", "with_damping")
+                  "observation_points", "element_quadrature", "nodal_quadrature", "with_damping")
 
 
 def importable_name(cls: type) -> str:

@@ -33,6 +33,7 @@ CAPABILITY_METHODS: dict[str, tuple[str, ...]] = {
     "true_energies": ("true_energy_parts",), "field_gradients": ("field_gradients",), "clamp": ("clamp_factor",),
     "kinetic_correction": ("kinetic_correction",), "release_at_rest": ("released_at_rest",),
     "damping": ("with_damping",), "element_quadrature": ("element_quadrature",),
+    "nodal_quadrature": ("nodal_quadrature",),
 }
 
 

@@ -40,9 +40,10 @@ from torch import Tensor
 from lnf.fem.body import ElasticBody, box_mesh
 from lnf.fem.materials import MATERIALS, HyperelasticMaterial, get_material
 from lnf.fem.time_stepping import implicit_midpoint, verlet
-from lnf.quadrature import Quadrature
+from lnf.quadrature import NodeQuadrature, Quadrature
 from lnf.scenes.base import (DiscretePotential, GeneralizedForce, Scene, SeparatedForce, StabilityCases, check_positive,
                              check_range)
+from lnf.scenes.mesh_potential import MeshStrainPotential
 
 log = logging.getLogger("lnf.scenes.elastic")
 
@@ -230,8 +231,18 @@ class ElasticCantilever(Scene):
     def density(self, points: Tensor) -> Tensor:
         return torch.full(points.shape[:-1], self.rho, dtype=points.dtype, device=points.device)
 
-    def potential(self, quadrature: Quadrature) -> ElasticPotential:
+    def potential(self, quadrature: Quadrature) -> "ElasticPotential | MeshStrainPotential":
+        """The continuum's V at quadrature points; on the mesh's nodes (:meth:`nodal_quadrature`), the mesh's own."""
+        if isinstance(quadrature, NodeQuadrature):
+            if len(quadrature) != self.body.n_nodes:
+                raise ValueError(f"a NodeQuadrature of {len(quadrature)} points is not this body's mesh "
+                                 f"({self.body.n_nodes} nodes): build it with scene.nodal_quadrature()")
+            return MeshStrainPotential(self.body, self.rho * self.gravity)
         return ElasticPotential(quadrature.weights, self.material, self.rho * self.gravity)
+
+    def nodal_quadrature(self) -> NodeQuadrature:
+        """The full-order mesh's nodes (nn, d) [m] and lumped volumes ∫ N_a dX (nn,) [m^d]."""
+        return NodeQuadrature(torch.as_tensor(self.body.nodes), torch.as_tensor(self.body.volume_per_node))
 
     @property
     def forced(self) -> bool:
