@@ -124,8 +124,8 @@ class TabulatedDynamics:
         builder: the same dynamics in the precision the table is built from (default `exact`; a float64
             copy keeps the derivatives of the interpolant clean of float32 rounding).
         low, high: the box of codes (d,) each, e.g. the training codes' range widened by a margin.
-        tol: target relative interpolation error of M̃ and of g̃ = ∂Ṽ/∂q̃ (and of a force's D̃ and ∂W/∂q̃) at check points (relative to their
-            largest magnitude on the box), floored at 10 rounding units of the rollout's dtype (1.2e-6 for
+        tol: target relative interpolation error of M̃ and of g̃ = ∂Ṽ/∂q̃ (and of a force's D̃ and ∂W/∂q̃) at check
+            points (relative to their largest magnitude on the box), floored at 10 rounding units of the rollout's dtype (1.2e-6 for
             float32); nodes per axis double from `min_nodes` until it is met.
         min_nodes, max_nodes: nodes per axis (the table holds nodes^d evaluations of the exact pullback).
         max_table_points: refuse tables larger than this (d ≥ 3 grows as nodes^d); use the exact dynamics.
@@ -140,7 +140,7 @@ class TabulatedDynamics:
     def __init__(self, exact: ReducedDynamics, low: Sequence[float], high: Sequence[float], tol: float = 1e-7,
                  min_nodes: int = 16, max_nodes: int = 256, max_table_points: int = 65536, chunk: int = 256,
                  builder: Optional[ReducedDynamics] = None) -> None:
-        separate = getattr(exact.force_fn, "separated", None)  # a force of GeneralizedForce's interface says
+        separate = getattr(exact.force_fn, "separated", None)  # GeneralizedForce.separated, if the force has one
         self.separated = separate() if separate is not None else None
         if exact.force_fn is not None and self.separated is None:
             raise ValueError(f"dynamics=tabulated needs a conservative scene or a separated force; "
