@@ -135,6 +135,24 @@ def test_newton_reuses_its_jacobian_while_the_iteration_contracts():
     assert np.allclose(traj.q[0].numpy(), exact.real, atol=1e-9)
 
 
+def test_a_trajectory_marked_diverged_costs_the_later_steps_no_newton_solve():
+    """A row whose force turns NaN (a closure's guard during the shooting) is marked diverged and frozen: the later
+    steps' batched solves see a finite state there, not NaN, which fails every fixed-point iteration and sent the row
+    to Newton's method (a fresh Jacobian, 4d evaluations each) at every step to the end of the rollout."""
+
+    class Cliff(_SpringHamiltonian):  # a soft spring whose force is NaN past q = 1.5 (the first coordinate)
+        def hamiltonian_derivatives(self, q, p, t=0.0):
+            v, force = super().hamiltonian_derivatives(q, p, t)
+            return v, torch.where((q[:, :1] > 1.5), torch.full_like(force, float("nan")), force)
+
+    q0 = torch.tensor([[1.0, 0.0], [1.0, 0.0]], dtype=torch.float64)
+    v0 = torch.tensor([[0.0, 0.0], [3.0, 0.0]], dtype=torch.float64)  # the second row runs past the cliff
+    solver = ImplicitMidpoint(order=2, max_substeps=1)
+    traj = solver.integrate(Cliff(1.0), q0, v0, 0.05, 200, on_divergence="mark")
+    assert traj.diverged_step[0] == -1 and 0 < int(traj.diverged_step[1]) < 20
+    assert solver.newton_solves <= 2 and solver.jacobians <= 2
+
+
 def test_settings_of_another_integrator_are_a_clear_error():
     """+experiment=<scene> sets integrator.order for the midpoint rule; RK4 must say how to drop it."""
     from lnf.integrators import get_integrator

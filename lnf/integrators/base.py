@@ -306,6 +306,7 @@ class FixedStepIntegrator(Integrator):
         # the last state whose step was checked against the fastest frequency: a stiff step that blows up later is
         # retaken from there (the states in between may be wrong without being non-finite yet)
         mark = (1, state, alive.clone(), diverged.clone())
+        frozen: Optional[tuple[Tensor, ...]] = None  # the internal state dead trajectories are held at
         n, done = 1, 0
         while n <= steps:
             if auto and n > 1 and (n - 1) % self.stiffness_check_every == 0 and substeps < self.max_substeps:
@@ -314,6 +315,9 @@ class FixedStepIntegrator(Integrator):
                 mark = (n, state, alive.clone(), diverged.clone())
             before = state
             state = self._advance(dynamics, before, dt, substeps, t0 + (n - 1) * dt)
+            if frozen is not None:  # dead trajectories stay at their harmless state: a NaN row fails every
+                # fixed-point iteration and would send the batched solve to Newton's method at each later step
+                state = tuple(torch.where(alive[:, None], s, s0) for s, s0 in zip(state, frozen))
             t = t0 + n * dt
             bad = self._bad(*state) & alive
             if bad.any() and auto and substeps < self.max_substeps:  # a stiff step? retake it from the mark
@@ -341,8 +345,8 @@ class FixedStepIntegrator(Integrator):
                 if not alive.any():
                     break
                 # freeze dead trajectories at a harmless state so they do not poison batched solves
-                state = tuple(torch.where(alive[:, None], s, s0) for s, s0 in
-                              zip(state, self._to_internal(dynamics, q0, v0)))
+                frozen = self._to_internal(dynamics, q0, v0) if frozen is None else frozen
+                state = tuple(torch.where(alive[:, None], s, s0) for s, s0 in zip(state, frozen))
             if progress is not None and n > done:
                 progress(1)
             done = max(done, n)
