@@ -74,14 +74,21 @@ class GeneralizedForce:
 
     ``field_force(t, q, v, controls)`` returns the force density f (B, N, A) per unit reference volume at the
     points, so that the reduced generalized force is τ̃ = Σ_j w_j J_jᵀ f_j (B, d). `controls` (B, c) are the
-    per-trajectory load parameters of :meth:`Scene.controls` (or None).
+    per-trajectory load parameters of :meth:`Scene.controls` (or None). A force that gives :meth:`separated` needs
+    no ``field_force`` of its own: the default reads it from there.
     """
 
     def __init__(self, weights: Tensor) -> None:
         self.weights = weights
 
-    def field_force(self, t: float, q: Tensor, v: Tensor, controls: Optional[Tensor]) -> Tensor:  # pragma: no cover
-        raise NotImplementedError
+    def field_force(self, t: float, q: Tensor, v: Tensor, controls: Optional[Tensor]) -> Tensor:
+        """f = −c(X) u̇ + Σ_k a_k(t) s_k(X) (B, N, A) of :meth:`separated`; a force that is not separated overrides
+        this."""
+        parts = self.separated()
+        if parts is None:  # pragma: no cover - interface
+            raise NotImplementedError(f"{type(self).__name__} defines neither field_force nor separated")
+        amplitudes = parts.amplitudes(t, controls, v.shape[0]).to(v)  # (B, K)
+        return -parts.damping.to(v)[None, :, None] * v + torch.einsum("bk,kna->bna", amplitudes, parts.shapes.to(v))
 
     def separated(self) -> Optional["SeparatedForce"]:
         """The force as f = −c(X) u̇ + Σ_k a_k(t) s_k(X) (:class:`SeparatedForce`), if it has that form: its reduced

@@ -88,25 +88,19 @@ class CantileverLoad(GeneralizedForce):
         self.profile = profile  # (N,)
         self.direction = torch.as_tensor(list(direction), dtype=torch.float64)  # (d,)
         self.rho, self.damping = rho, damping
+        shape = profile[:, None] * self.direction.to(profile)[None, :]  # (N, d)
+        self._separated = SeparatedForce(torch.full_like(profile, damping * rho), shape[None], self._amplitudes)
 
-    def field_force(self, t: float, q: Tensor, v: Tensor, controls: Optional[Tensor]) -> Tensor:
-        force = -self.damping * self.rho * v
-        if controls is not None:
-            amplitude = controls[:, 0] * torch.sin(2 * math.pi * controls[:, 1] * t)  # (B,)
-            shape = self.profile.to(v)[:, None] * self.direction.to(v)[None, :]  # (N, d)
-            force = force + amplitude[:, None, None] * shape[None]
-        return force
+    @staticmethod
+    def _amplitudes(t: float, controls: Optional[Tensor], batch: int) -> Tensor:
+        """A sin(2π f t) (B, 1) of controls (B, 2) = (A, f); zeros without controls."""
+        if controls is None:
+            return torch.zeros(batch, 1, dtype=torch.float64)
+        return (controls[:, 0] * torch.sin(2 * math.pi * controls[:, 1] * t))[:, None]
 
     def separated(self) -> SeparatedForce:
-        """−α ρ u̇ and one load of shape s(X) ê with amplitude A sin(2π f t)."""
-        shape = self.profile[:, None] * self.direction.to(self.profile)[None, :]  # (N, d)
-
-        def amplitudes(t: float, controls: Optional[Tensor], batch: int) -> Tensor:
-            if controls is None:
-                return torch.zeros(batch, 1, dtype=shape.dtype, device=shape.device)
-            return (controls[:, 0] * torch.sin(2 * math.pi * controls[:, 1] * t))[:, None]
-
-        return SeparatedForce(torch.full_like(self.profile, self.damping * self.rho), shape[None], amplitudes)
+        """−α ρ u̇ and one load of shape s(X) ê with amplitude A sin(2π f t) (``field_force`` reads it)."""
+        return self._separated
 
 
 class ElasticCantilever(Scene):
