@@ -315,9 +315,6 @@ class FixedStepIntegrator(Integrator):
                 mark = (n, state, alive.clone(), diverged.clone())
             before = state
             state = self._advance(dynamics, before, dt, substeps, t0 + (n - 1) * dt)
-            if frozen is not None:  # dead trajectories stay at their harmless state: a NaN row fails every
-                # fixed-point iteration and would send the batched solve to Newton's method at each later step
-                state = tuple(torch.where(alive[:, None], s, s0) for s, s0 in zip(state, frozen))
             t = t0 + n * dt
             bad = self._bad(*state) & alive
             if bad.any() and auto and substeps < self.max_substeps:  # a stiff step? retake it from the mark
@@ -344,8 +341,9 @@ class FixedStepIntegrator(Integrator):
                 alive &= ~bad
                 if not alive.any():
                     break
-                # freeze dead trajectories at a harmless state so they do not poison batched solves
                 frozen = self._to_internal(dynamics, q0, v0) if frozen is None else frozen
+            if frozen is not None:  # dead trajectories held at a harmless state, at every step: a NaN row poisons
+                # batched solves (it fails every fixed-point iteration and sends the midpoint rule to Newton's method)
                 state = tuple(torch.where(alive[:, None], s, s0) for s, s0 in zip(state, frozen))
             if progress is not None and n > done:
                 progress(1)
