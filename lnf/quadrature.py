@@ -180,41 +180,47 @@ class GivenPoints(QuadratureRule):
         return f"given_points(n={len(self.weights)})"
 
 
-class MeshElements(QuadratureRule):
+class _SceneMeshRule(QuadratureRule):
+    """A rule whose points come from the scene's own mesh (``scene.<capability>()``), not from its bounds."""
+
+    option = ""  # the quadrature= option
+    capability = ""  # the Scene method that gives the rule
+
+    def build(self, bounds: Bounds) -> Quadrature:
+        raise ValueError(f"quadrature={self.option} takes its points from the scene's mesh: build it with "
+                         "build_for(scene)")
+
+    def build_for(self, scene: Any) -> Quadrature:
+        if not (hasattr(scene, "provides") and scene.provides(self.capability)):
+            raise ValueError(f"quadrature={self.option}: scene {getattr(scene, 'name', scene)!r} has no mesh of its "
+                             f"own (it defines no {self.capability}()); choose quadrature=gauss_legendre")
+        return getattr(scene, self.capability)()
+
+
+class MeshElements(_SceneMeshRule):
     """The quadrature of the scene's own mesh (``scene.element_quadrature()``: its elements' points and weights),
     for a body that does not fill its box."""
 
-    def build(self, bounds: Bounds) -> Quadrature:
-        raise ValueError("quadrature=mesh takes its points from the scene's mesh: build it with build_for(scene)")
+    option, capability = "mesh", "element_quadrature"
 
     def build_for(self, scene: Any) -> Quadrature:
-        if not (hasattr(scene, "provides") and scene.provides("element_quadrature")):
-            raise ValueError(f"quadrature=mesh: scene {getattr(scene, 'name', scene)!r} has no mesh of its own "
-                             "(it defines no element_quadrature()); choose quadrature=gauss_legendre")
-        quad = scene.element_quadrature()
+        quad = super().build_for(scene)
         return Quadrature(torch.as_tensor(quad.points), torch.as_tensor(quad.weights))
 
     def describe(self) -> str:
         return "mesh_elements"
 
 
-class MeshNodes(QuadratureRule):
+class MeshNodes(_SceneMeshRule):
     """The nodes of the scene's own mesh with their lumped volumes (``scene.nodal_quadrature()``, a
     :class:`NodeQuadrature`): the reduced dynamics pull back the mesh's discrete Lagrangian (docs/method.md §6.1).
     `order` is accepted and not used (an experiment's Gauss–Legendre order stays in the config when
     ``quadrature=mesh_nodes`` replaces its rule: the mesh sets the points)."""
 
+    option, capability = "mesh_nodes", "nodal_quadrature"
+
     def __init__(self, order: Any = None) -> None:
-        self.unused_order = order
-
-    def build(self, bounds: Bounds) -> Quadrature:
-        raise ValueError("quadrature=mesh_nodes takes its points from the scene's mesh: build it with build_for(scene)")
-
-    def build_for(self, scene: Any) -> Quadrature:
-        if not (hasattr(scene, "provides") and scene.provides("nodal_quadrature")):
-            raise ValueError(f"quadrature=mesh_nodes: scene {getattr(scene, 'name', scene)!r} has no mesh of its own "
-                             "(it defines no nodal_quadrature()); choose quadrature=gauss_legendre")
-        return scene.nodal_quadrature()
+        del order
 
     def describe(self) -> str:
         return "mesh_nodes"
