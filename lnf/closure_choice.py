@@ -140,13 +140,12 @@ def shoot_closure(model: Any, codes: torch.Tensor, velocities: torch.Tensor, dt:
         return np.nan_to_num(out, nan=10.0, posinf=10.0, neginf=-10.0)
 
     theta0 = closure.coef.detach().double().cpu().numpy() / unit
-    # a trial trajectory that runs away from the training codes ends there (the closure's force is NaN past the
-    # guard: diverged, a gap of 10 spreads from then on; before, it ended the whole trial, and on the soft body at
-    # d = 2 every trial of the search then had the same gap, 10, and it never moved): the search never
-    # pays for rollouts that crawl far off the codes (stiff implicit solves of the exact pullback). On a table, trials
-    # past its box read the table's continuation, not exact jets (each step of those cost a jet: on the soft body at
-    # d = 2 a search sat 80 min there); ending them at the box instead made the soft body's search stall at d = 1
-    # (training-window misfit 0.133 → 0.126, where it reached a validation error of 0.0089 from the pullback's 0.011)
+    # A trial trajectory that runs away from the training codes ends there: past the guard the closure's force is
+    # NaN, the row diverges and its gap is 10 spreads from then on, so the search never pays for rollouts that crawl
+    # off the codes (stiff implicit solves of the exact pullback). Only that row ends: when one row ended the whole
+    # trial, every trial of the soft body's d = 2 search had the same gap and it never moved. On a table, trials past
+    # its box read the table's continuation, not exact jets (a search sat 80 min there on the soft body at d = 2);
+    # ending them at the box instead stalled the soft body's d = 1 search (0.133 → 0.126 in place of 0.0486 → 0.0144).
     continuation = getattr(dynamics.base, "continued_off_box", contextlib.nullcontext)
     closure.set_guard(SHOOTING_GUARD_MARGIN)
     try:

@@ -179,6 +179,7 @@ class TabulatedDynamics:
         channel = {pair: c for c, pair in enumerate(self.pairs)}
         self.symmetric_index = torch.tensor([channel[(min(a, b), max(a, b))] for a in range(self.d) for b in range(self.d)],
                                             device=self.device)  # M̃_ab's channel, row-major (d²,)
+        self._damping_index = self._damping.start + self.symmetric_index  # D̃_ab's channel, row-major (d²,)
         self._continue_off_box = False  # continued_off_box(): rows off the box read its edge, not the exact pullback
         self.fallback_rows = 0  # rows evaluated exactly because they left the box (diagnostics)
         self.evaluated_rows = 0
@@ -325,7 +326,7 @@ class TabulatedDynamics:
 
     def _force(self, out: Tensor, v: Tensor, t: float) -> Tensor:
         """τ̃ = −D̃ q̃̇ + Σ_k a_k(t) ∂W_k/∂q̃ (B, d) of a separated force, from the table's `out` at q̃."""
-        damping = out[:, 0, self._damping.start + self.symmetric_index].reshape(-1, self.d, self.d)
+        damping = out[:, 0, self._damping_index].reshape(-1, self.d, self.d)
         amplitudes = self.separated.amplitudes(t, self.controls, v.shape[0]).to(v)  # (B, K)
         return (-torch.einsum("bij,bj->bi", damping, v)
                 + torch.einsum("bik,bk->bi", out[:, 1:, self._loads], amplitudes))
