@@ -32,6 +32,9 @@ SHOOTING_TRAJECTORIES, SHOOTING_TRAJECTORIES_EXACT = 16, 4
 SHOOTING_EVALUATIONS_PER_TERM = 20
 #: a shooting trial whose rollout leaves the training codes by more than this fraction of their span ends there
 SHOOTING_GUARD_MARGIN = 1.0
+#: the shooting first fits windows of this many samples (multiple shooting: each window starts from the encoded
+#: state), then the whole training window from there
+SHOOTING_WINDOW = 10
 
 
 def fit_closure(model: Any, datamodule: Any, spec: Any) -> dict[str, float]:
@@ -82,7 +85,7 @@ def fit_closure(model: Any, datamodule: Any, spec: Any) -> dict[str, float]:
     # shooting starts from a residual fit even where the pure pullback won: from zero the search stalls in a
     # local minimum of the phase (soft body: misfit 0.051 → 0.051; from the residual fit 0.074 → 0.012)
     closure.coef.copy_(start_from[3])
-    cost = shoot_closure(model, q, v, datamodule.dt, controls, spec.integrator)
+    cost = shoot_closure(model, q, v, datamodule.dt, controls, spec.integrator, float(train.times[0]))
     # unchanged coefficients (the search found nothing better) keep their validation error: no second rollout
     err = val_error() if cost[1] < cost[0] else start_from[0]
     log.info("closure by shooting from λ = %.0e: training-window misfit %.3g → %.3g of the codes' spread, "
@@ -106,17 +109,20 @@ def _record(best: tuple[float, float, float], pullback_error: float, shot: bool,
 
 
 def shoot_closure(model: Any, codes: torch.Tensor, velocities: torch.Tensor, dt: float,
-                  controls: "torch.Tensor | None", integrator: Any) -> tuple[float, float]:
+                  controls: "torch.Tensor | None", integrator: Any, t0: float = 0.0) -> tuple[float, float]:
     """Refine the model's closure coefficients in place by shooting: Levenberg–Marquardt (scipy) on the gap between
-    the closed dynamics' rollouts from each encoded training start (q̃, q̃̇)(t0) and the encoded codes `codes` (n, T, d)
-    over the training window, in units of the codes' spread, on :data:`SHOOTING_TRAJECTORIES` evenly spaced
-    trajectories (:data:`SHOOTING_TRAJECTORIES_EXACT` where the dynamics are not a table), under the evaluation's
-    `integrator`. A residual fit matches the equations sample by sample; this matches their solutions, so the phase
-    after many periods. A rollout that diverges or leaves the training codes by more than
+    the closed dynamics' rollouts from encoded training states (q̃, q̃̇) and the encoded codes `codes` (n, T, d, every
+    `dt` [s] from `t0`), in units of the codes' spread, on :data:`SHOOTING_TRAJECTORIES` evenly spaced trajectories
+    (:data:`SHOOTING_TRAJECTORIES_EXACT` where the dynamics are not a table), under the evaluation's `integrator`.
+    A residual fit matches the equations sample by sample; this matches their solutions, so the phase after many
+    periods. Two stages: multiple shooting (windows of :data:`SHOOTING_WINDOW` samples, each rolled out from its
+    own encoded start: short rollouts stay near the codes and their gap is smooth in the coefficients), then single
+    shooting over the whole training window from the better of the start and that. The coefficients kept are those
+    (start, after either stage) with the smallest whole-window gap. A rollout that diverges or leaves the training codes by more than
     :data:`SHOOTING_GUARD_MARGIN` of their span counts as a gap of 10 spreads per sample from there on (that
     trajectory only: one that runs off leaves the others' gaps to guide the search); on a table, trials read its
     continuation beyond its box (:meth:`lnf.tabulated.TabulatedDynamics.continued_off_box`), not exact jets.
-    Returns the RMS gap (start, end)."""
+    Returns the whole-window RMS gap (start, end)."""
     closure = model.closure
     # the closed dynamics (the model's table where it has one), reading the coefficients as they change:
     # model.dynamics() leaves a zero closure out
@@ -131,13 +137,31 @@ def shoot_closure(model: Any, codes: torch.Tensor, velocities: torch.Tensor, dt:
         # finite-difference steps of the search (10⁻³ of it) then move the rollouts well above float32 round-off
         potential = dynamics.base.potential_energy(q.reshape(-1, q.shape[-1]))
     unit = float((potential.max() - potential.min()).clamp_min(1e-30))
+    steps = q.shape[1] - 1
+    window = min(SHOOTING_WINDOW, steps)
 
-    def gap(theta: np.ndarray) -> np.ndarray:
+    # without non-conservative forces the reduced equations do not depend on t: every window is a row of one rollout
+    autonomous = bool(getattr(getattr(model, "scene", None), "is_conservative", False))
+
+    def gap(theta: np.ndarray, starts: "range | tuple[int, ...]", length: int) -> np.ndarray:
         closure.coef.copy_(torch.as_tensor(theta * unit, dtype=closure.coef.dtype))
-        traj = model.rollout(q[:, 0], v[:, 0], dt=dt, steps=q.shape[1] - 1, integrator=integrator,
-                             on_divergence="mark", dynamics=dynamics, controls=forces)
-        out = ((traj.q - q) / spread).double().cpu().numpy().ravel()
-        return np.nan_to_num(out, nan=10.0, posinf=10.0, neginf=-10.0)
+        groups = [tuple(starts)] if autonomous else [(s,) for s in starts]  # a forced scene's loads depend on t
+        out = []
+        for group in groups:
+            first = torch.cat([q[:, s] for s in group]), torch.cat([v[:, s] for s in group])
+            traj = model.rollout(*first, dt=dt, steps=length, integrator=integrator, t0=t0 + group[0] * dt,
+                                 on_divergence="mark", dynamics=dynamics,
+                                 controls=None if forces is None else forces.repeat(len(group), 1))
+            target = torch.cat([q[:, s:s + length + 1] for s in group])
+            out.append(((traj.q - target) / spread).double().cpu().numpy().ravel())
+        return np.nan_to_num(np.concatenate(out), nan=10.0, posinf=10.0, neginf=-10.0)
+
+    def whole(theta: np.ndarray) -> float:
+        return float(np.sqrt(np.mean(gap(theta, (0,), steps) ** 2)))
+
+    def search(theta: np.ndarray, starts: "range | tuple[int, ...]", length: int) -> np.ndarray:
+        return least_squares(lambda x: gap(x, starts, length), theta, method="lm", x_scale="jac", diff_step=1e-3,
+                             max_nfev=SHOOTING_EVALUATIONS_PER_TERM * (len(theta) + 1)).x
 
     theta0 = closure.coef.detach().double().cpu().numpy() / unit
     # A trial trajectory that runs away from the training codes ends there: past the guard the closure's force is
@@ -146,17 +170,24 @@ def shoot_closure(model: Any, codes: torch.Tensor, velocities: torch.Tensor, dt:
     # trial, every trial of the soft body's d = 2 search had the same gap and it never moved. On a table, trials past
     # its box read the table's continuation, not exact jets (a search sat 80 min there on the soft body at d = 2);
     # ending them at the box instead stalled the soft body's d = 1 search (0.133 → 0.126 in place of 0.0486 → 0.0144).
+    # Single shooting alone stalled where the start's rollouts already ran off (soft body, d = 2: 4.17 → 4.17
+    # spreads): every row's gap was the flat 10 of a dead trajectory; short windows keep them alive.
     continuation = getattr(dynamics.base, "continued_off_box", contextlib.nullcontext)
     closure.set_guard(SHOOTING_GUARD_MARGIN)
     try:
         with continuation():
-            start = float(np.sqrt(np.mean(gap(theta0) ** 2)))
-            sol = least_squares(gap, theta0, method="lm", x_scale="jac", diff_step=1e-3,
-                                max_nfev=SHOOTING_EVALUATIONS_PER_TERM * (len(theta0) + 1))
-            end = float(np.sqrt(np.mean(gap(sol.x) ** 2)))
+            candidates = [(whole(theta0), theta0)]
+            starts = tuple(sorted({*range(0, steps - window + 1, window), steps - window}))  # the last ends at T
+            windowed = search(theta0, starts, window) if window < steps else theta0
+            candidates.append((whole(windowed), windowed))
+            # the whole window from the better of the two: where the windows found nothing better, single shooting
+            # from the start as before them
+            single = search(min(candidates, key=lambda c: c[0])[1], (0,), steps)
+            candidates.append((whole(single), single))
     finally:
         closure.set_guard(None)
-    if not end < start:  # keep the start where the search found nothing better
-        sol.x, end = theta0, start
-    closure.coef.copy_(torch.as_tensor(sol.x * unit, dtype=closure.coef.dtype))
-    return start, end
+    log.info("closure shooting: whole-window gap %.3g at the start, %.3g after windows of %d samples, %.3g after the "
+             "whole window", candidates[0][0], candidates[1][0], window, candidates[2][0])
+    end, best = min(candidates, key=lambda c: c[0])  # ties keep the earlier: the start where nothing was better
+    closure.coef.copy_(torch.as_tensor(best * unit, dtype=closure.coef.dtype))
+    return candidates[0][0], end

@@ -187,8 +187,8 @@ class ReducedModel(nn.Module):
                 integrator: "str | Integrator | dict" = "implicit_midpoint", record_every: int = 1,
                 quadrature: "Quadrature | QuadratureRule | None" = None,
                 on_divergence: str = "raise", controls: Optional[Tensor] = None, dynamics: Any = None,
-                progress: Optional[Callable[[int], None]] = None) -> Trajectory:
-        """Integrate the reduced dynamics from (q̃0, q̃̇0) (B, d) for `steps` steps of `dt` [s].
+                progress: Optional[Callable[[int], None]] = None, t0: float = 0.0) -> Trajectory:
+        """Integrate the reduced dynamics from (q̃0, q̃̇0) (B, d) at time `t0` [s] for `steps` steps of `dt` [s].
 
         `controls` (B, c): per-trajectory load parameters of a forced scene (:meth:`Scene.controls`).
         `dynamics`: what :meth:`dynamics` (`quadrature`) returned, if the caller already built it.
@@ -210,7 +210,7 @@ class ReducedModel(nn.Module):
         # a dynamics of small tensors (a table) runs on one thread: its ops are too small for a thread pool
         threads = one_torch_thread() if getattr(dynamics, "small_tensors", False) else contextlib.nullcontext()
         with torch.no_grad(), threads:
-            return integ.integrate(dynamics, q0, v0, dt, steps, record_every=record_every,
+            return integ.integrate(dynamics, q0, v0, dt, steps, record_every=record_every, t0=t0,
                                    on_divergence=on_divergence, **extra)
 
     def energy(self, q: Tensor, v: Tensor, quadrature: "Quadrature | QuadratureRule | None" = None

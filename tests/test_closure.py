@@ -3,6 +3,7 @@ import json
 import os
 import subprocess
 import sys
+from types import SimpleNamespace
 
 import pytest
 import torch
@@ -187,8 +188,9 @@ def test_a_run_fits_the_closure_and_its_checkpoint_loads_with_it(tmp_path):
 class _ClosedModel:
     """The part of a ReducedModel that shooting uses: a closure on a fixed base dynamics, rolled out by an integrator."""
 
-    def __init__(self, base, closure):
+    def __init__(self, base, closure, conservative=True):
         self.base, self.closure = base, closure
+        self.scene = SimpleNamespace(is_conservative=conservative)  # False: the shooting rolls out each window alone
 
     def as_model(self, x):
         return x
@@ -196,8 +198,8 @@ class _ClosedModel:
     def dynamics(self):  # as ReducedModel.dynamics: closed only while the closure is active
         return ClosedDynamics(self.base, self.closure) if self.closure.active else self.base
 
-    def rollout(self, q0, v0, dt, steps, integrator, on_divergence, dynamics, controls):
-        return get_integrator(integrator).integrate(dynamics, q0, v0, dt, steps, on_divergence=on_divergence)
+    def rollout(self, q0, v0, dt, steps, integrator, on_divergence, dynamics, controls, t0=0.0):
+        return get_integrator(integrator).integrate(dynamics, q0, v0, dt, steps, t0=t0, on_divergence=on_divergence)
 
 
 def test_shooting_recovers_the_closure_whose_motion_the_codes_follow_from_a_wrong_start(pendulum):
@@ -219,12 +221,49 @@ def test_shooting_recovers_the_closure_whose_motion_the_codes_follow_from_a_wron
         torch.testing.assert_close(fitted.coef, truth.coef, rtol=1e-4, atol=1e-5)
 
 
+class _UnitSpring:
+    """q̈ = −q (+ the closure's force): a base dynamics whose rollouts cost nothing."""
+
+    def acceleration(self, q, v, t=0.0, extra_force=None):
+        return -q if extra_force is None else extra_force - q
+
+    def potential_energy(self, q):
+        return 0.5 * (q ** 2).sum(-1)
+
+
+def test_multiple_shooting_escapes_the_phase_minimum_that_stalls_single_shooting(monkeypatch):
+    """Over many periods the whole-window gap has local minima in the frequency (a phase off by whole turns):
+    from no closure, single shooting alone settles in one (here ω = 0.5 in place of 2, gap 1.27 of the codes'
+    spread); windows of 10 samples, each from its encoded state, see less than a period and find the closure."""
+    from lnf import closure_choice
+
+    truth = PotentialClosure(1, 2).double()  # ΔṼ = 1.5 q²: ω² = 1 + 3
+    truth.coef.copy_(torch.tensor([0.0, 1.5]))
+    truth.scale.fill_(2.0)
+    q0 = torch.tensor([[0.5], [-0.8], [1.1]], dtype=torch.float64)
+    dt = 0.1
+    motion = get_integrator("rk4").integrate(ClosedDynamics(_UnitSpring(), truth), q0, torch.zeros_like(q0), dt, 150)
+
+    def shoot(window, conservative=True):
+        monkeypatch.setattr(closure_choice, "SHOOTING_WINDOW", window)
+        fitted = PotentialClosure(1, 2).double()
+        fitted.scale.fill_(2.0)
+        start, end = closure_choice.shoot_closure(_ClosedModel(_UnitSpring(), fitted, conservative), motion.q,
+                                                  motion.v, dt, None, "rk4")
+        return fitted, start, end
+
+    fitted, start, end = shoot(150)  # one window, the whole training window: single shooting alone
+    assert end > 0.5 * start and abs(float(fitted.coef[1]) - 1.5) > 1.0
+    for conservative in (True, False):  # the windows as rows of one rollout, or one rollout each (forced scenes)
+        fitted, start, end = shoot(10, conservative)
+        assert end < 1e-6 * start
+        torch.testing.assert_close(fitted.coef, truth.coef, rtol=1e-6, atol=1e-8)
+
+
 def test_the_closure_fit_reads_a_forced_scenes_loads_where_the_file_stores_none(tmp_path, monkeypatch):
     """A generated actuated cantilever keeps its loads (A, f) in the states, not in a `controls` dataset: the closure's
     residual and shooting must act them, as the evaluation does (they once ran without the actuation)."""
     import dataclasses
-    from types import SimpleNamespace
-
     import numpy as np
 
     from lnf import closure_choice
