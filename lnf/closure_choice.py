@@ -118,10 +118,11 @@ def shoot_closure(model: Any, codes: torch.Tensor, velocities: torch.Tensor, dt:
     periods. Two stages: multiple shooting (windows of :data:`SHOOTING_WINDOW` samples, each rolled out from its
     own encoded start: short rollouts stay near the codes and their gap is smooth in the coefficients), then single
     shooting over the whole training window from the better of the start and that. The coefficients kept are those
-    (start, after either stage) with the smallest whole-window gap. A rollout that diverges or leaves the training codes by more than
-    :data:`SHOOTING_GUARD_MARGIN` of their span counts as a gap of 10 spreads per sample from there on (that
-    trajectory only: one that runs off leaves the others' gaps to guide the search); on a table, trials read its
-    continuation beyond its box (:meth:`lnf.tabulated.TabulatedDynamics.continued_off_box`), not exact jets.
+    (start, after either stage) with the smallest whole-window gap. A rollout that diverges or leaves the training
+    codes by more than :data:`SHOOTING_GUARD_MARGIN` of their span counts as a gap of 10 spreads per sample from
+    there on (that trajectory only: one that runs off leaves the others' gaps to guide the search); on a table,
+    trials read its continuation beyond its box (:meth:`lnf.tabulated.TabulatedDynamics.continued_off_box`), not
+    exact jets.
     Returns the whole-window RMS gap (start, end)."""
     closure = model.closure
     # the closed dynamics (the model's table where it has one), reading the coefficients as they change:
