@@ -136,6 +136,8 @@ class TabulatedDynamics:
     kind = TABULATED
     #: rollouts run on one torch thread: an evaluation is a few hundred numbers (lnf.threads.one_torch_thread)
     small_tensors = True
+    #: the table is built in batches of at most this many (code, quadrature point) pairs
+    CHUNK_POINTS = 1 << 17
 
     def __init__(self, exact: ReducedDynamics, low: Sequence[float], high: Sequence[float], tol: float = 1e-7,
                  min_nodes: int = 16, max_nodes: int = 256, max_table_points: int = 65536, chunk: int = 256,
@@ -163,7 +165,9 @@ class TabulatedDynamics:
             raise ValueError(f"a table of latent dimension d = {self.d} needs at least {int(min_nodes) ** self.d} "
                              f"pullback evaluations (> dynamics.max_table_points = {max_table_points}); "
                              "use dynamics=lagrangian for this model")
-        self.chunk = int(chunk)
+        # codes per batch of exact evaluations: at most `chunk`, and at most CHUNK_POINTS codes × quadrature points
+        # (a jet holds a few hundred numbers per code and point: 256 codes on a 16³ rule took 22 GB)
+        self.chunk = max(1, min(int(chunk), self.CHUNK_POINTS // max(1, int(self.builder.density_weights.numel()))))
         self.controls: Optional[Tensor] = None  # per-trajectory load parameters (B, c) of a separated force
         ref = exact.density_weights
         self.dtype, self.device = ref.dtype, ref.device  # of the rollout

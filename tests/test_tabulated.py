@@ -32,6 +32,18 @@ def test_chebyshev_table_rejects_a_bad_box():
         ChebyshevTable(np.zeros((4, 1)), [1.0], [1.0])
 
 
+def test_the_table_is_built_in_batches_bounded_by_codes_times_quadrature_points():
+    """A fine rule must not multiply the build's memory: 256 codes at once on a 16³ rule held 22 GB of jets."""
+    _, exact, _ = _nonlinear_setup(n=4096)
+    sizes = []
+    static_terms = exact.static_terms
+    exact.static_terms = lambda rows: sizes.append(len(rows)) or static_terms(rows)
+    tab = TabulatedDynamics(exact, [-1.0, -1.0], [1.5, 1.0], tol=1e-6)
+    assert max(sizes) == TabulatedDynamics.CHUNK_POINTS // 4096 == tab.chunk and sum(sizes) >= 16 ** 2
+    _, small, _ = _nonlinear_setup()
+    assert TabulatedDynamics(small, [-1.0, -1.0], [1.5, 1.0], tol=1e-6).chunk == 256  # a coarse rule: as before
+
+
 def test_tabulated_matches_the_exact_nonlinear_pullback_in_2d():
     _, exact, _ = _nonlinear_setup()
     tab = TabulatedDynamics(exact, [-1.0, -1.0], [1.5, 1.0], tol=1e-10)
