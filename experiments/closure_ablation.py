@@ -47,13 +47,16 @@ def run_integrator(ckpt: Path) -> Any:
     return "implicit_midpoint"
 
 
-def ablate(ckpt: Path, degree: int) -> dict[str, Any]:
-    """Test metrics of `ckpt` without and with a closure of `degree` (fitted here), and the fit's record."""
+def ablate(ckpt: Path, degree: int, shooting_iterations: int = EvaluationSpec.closure_shooting_iterations
+           ) -> dict[str, Any]:
+    """Test metrics of `ckpt` without and with a closure of `degree` (fitted here, its shooting search bounded by
+    `shooting_iterations` Levenberg–Marquardt iterations per term in each stage), and the fit's record."""
     model = load(ckpt)
     if getattr(model, "latent_dynamics", None) is not None or model.state_is_field:
         raise SystemExit(f"--ckpt {ckpt}: {type(model).__name__} has no reduced pulled-back dynamics to close")
     dm = snapshot_data_of(model)
-    spec = EvaluationSpec(integrator=run_integrator(ckpt), label="test rollout", figures=0)
+    spec = EvaluationSpec(integrator=run_integrator(ckpt), label="test rollout", figures=0,
+                          closure_shooting_iterations=shooting_iterations)
     test = EvaluationData.of_split(dm.split("test"), model.scene)
     model.eval()
     model.closure = None
@@ -93,22 +96,30 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--degree", type=int, default=4, help="the closure's polynomial degree p ≥ 2 (default 4)")
     parser.add_argument("--out", type=Path, default=ROOT / "outputs" / "studies" / "closure_ablation")
     parser.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
+    parser.add_argument("--shooting-iterations", type=int, default=EvaluationSpec.closure_shooting_iterations,
+                        help="Levenberg–Marquardt iterations per closure term in each stage of the shooting "
+                             "search; 0 keeps the residual fit (default %(default)s, as "
+                             "evaluation.closure_shooting_iterations)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="[%(name)s] %(message)s")  # the fit's candidates and choice
     if args.degree < 2:
         raise SystemExit(f"--degree must be ≥ 2, got {args.degree}")
+    if args.shooting_iterations < 0:
+        raise SystemExit(f"--shooting-iterations must be ≥ 0, got {args.shooting_iterations}")
     missing = [str(c) for c in args.ckpt if not c.is_file()]
     if missing:
         raise SystemExit(f"--ckpt: no such file: {', '.join(missing)}")
     if args.threads:
         torch.set_num_threads(args.threads)
     command = "python -m experiments.closure_ablation " + " ".join(
-        ["--ckpt", *map(str, args.ckpt), "--degree", str(args.degree)])
+        ["--ckpt", *map(str, args.ckpt), "--degree", str(args.degree)]
+        + ([] if args.shooting_iterations == EvaluationSpec.closure_shooting_iterations
+           else ["--shooting-iterations", str(args.shooting_iterations)]))
     rows = []
     args.out.mkdir(parents=True, exist_ok=True)
     for ckpt in args.ckpt:
         print(f"[closure_ablation] {ckpt}", flush=True)
-        rows.append(ablate(ckpt, args.degree))
+        rows.append(ablate(ckpt, args.degree, args.shooting_iterations))
         p, c = rows[-1]["plain"], rows[-1]["closed"]
         print(f"[closure_ablation]   after horizon {p['field_rel_l2/extrapolation/median']:.4g} → "
               f"{c['field_rel_l2/extrapolation/median']:.4g}", flush=True)

@@ -187,11 +187,14 @@ def tabulated_sweeps(study: S.Study) -> None:
 def closure_sweeps(study: S.Study) -> None:
     """Our width sweep re-evaluated with a potential closure fitted on each model's training trajectories first
     (``lnf.evaluate closure_degree=4``, method §5.6): the method "lnf_closure", at the same widths; under --smoke
-    the first width only."""
+    the first width only, its residual fit alone (a one-epoch model's stiff trial rollouts cost seconds each; the
+    shooting has tests of its own, tests/test_closure.py)."""
     widths = checkpoints(study, "lnf_width")
-    for width, ckpt in widths[:1] if study.mode == "smoke" else widths:
+    smoke = study.mode == "smoke"
+    for width, ckpt in widths[:1] if smoke else widths:
         study.multirun(f"closure_w{width}", ["figures=0", f"threads={study.threads}", f"ckpt_path={ckpt}",
-                                             "closure_degree=4"], "lnf.evaluate",
+                                             "closure_degree=4", *(["closure_shooting_iterations=0"] if smoke else [])],
+                       "lnf.evaluate",
                        {"method": "lnf_closure", "knob": "width", "model.width": width})
 
 

@@ -18,7 +18,7 @@ from scipy.optimize import least_squares
 
 from lnf.baselines.latent_mlp import latent_trajectories
 from lnf.closure import ClosedDynamics, equation_residual
-from lnf.evaluation_pipeline import EvaluationData, evaluate_model
+from lnf.evaluation_pipeline import EvaluationData, EvaluationSpec, evaluate_model
 
 log = logging.getLogger("lnf.closure")
 
@@ -27,9 +27,10 @@ log = logging.getLogger("lnf.closure")
 CLOSURE_REGULARIZERS = (1e-8, 1e-5, 1e-2)
 CLOSURE_VAL_TRAJECTORIES = 8
 #: the training trajectories (evenly spaced) whose rollouts the shooting refinement fits (a table's rollouts cost
-#: milliseconds; the exact pullback's, a jet per step: fewer), and its evaluations per term
+#: milliseconds; the exact pullback's, a jet per step: fewer), and its Levenberg–Marquardt iterations per term in
+#: each stage by default (``evaluation.closure_shooting_iterations``)
 SHOOTING_TRAJECTORIES, SHOOTING_TRAJECTORIES_EXACT = 16, 4
-SHOOTING_EVALUATIONS_PER_TERM = 20
+SHOOTING_ITERATIONS_PER_TERM = EvaluationSpec.closure_shooting_iterations
 #: a shooting trial whose rollout leaves the training codes by more than this fraction of their span ends there
 SHOOTING_GUARD_MARGIN = 1.0
 #: the shooting first fits windows of this many samples (multiple shooting: each window starts from the encoded
@@ -42,8 +43,9 @@ def fit_closure(model: Any, datamodule: Any, spec: Any) -> dict[str, float]:
     along the encoded training trajectories, a ridge fit per regularizer of :data:`CLOSURE_REGULARIZERS`, and the
     one (or none: the pure pullback) whose rollouts of the first validation trajectories have the smallest field
     error within the training horizon. The residual fit with the best validation error (chosen or not) is then
-    refined by shooting (:func:`shoot_closure`) and the refinement is a candidate of its own. `spec`: the test's
-    EvaluationSpec (its integrator and decoding)."""
+    refined by shooting (:func:`shoot_closure`, `spec.closure_shooting_iterations` iterations per term in each
+    stage; none at 0) and the refinement is a candidate of its own. `spec`: the test's EvaluationSpec (its
+    integrator, decoding and shooting budget)."""
     start = time.perf_counter()
     closure = model.closure
     model.eval()
@@ -82,17 +84,22 @@ def fit_closure(model: Any, datamodule: Any, spec: Any) -> dict[str, float]:
             best, chosen = (err, lam, misfit), closure.coef.clone()
         if start_from[3] is None or err < start_from[0]:
             start_from = (err, lam, misfit, closure.coef.clone())
-    # shooting starts from a residual fit even where the pure pullback won: from zero the search stalls in a
-    # local minimum of the phase (soft body: misfit 0.051 → 0.051; from the residual fit 0.074 → 0.012; at d = 2,
-    # multiple shooting from zero 0.047 → 0.047, from the residual fit 4.17 → 0.028)
-    closure.coef.copy_(start_from[3])
-    cost = shoot_closure(model, q, v, datamodule.dt, controls, spec.integrator, float(train.times[0]))
-    # unchanged coefficients (the search found nothing better) keep their validation error: no second rollout
-    err = val_error() if cost[1] < cost[0] else start_from[0]
-    log.info("closure by shooting from λ = %.0e: training-window misfit %.3g → %.3g of the codes' spread, "
-             "validation field error %.4g in the horizon", start_from[1], *cost, err)
-    if err < best[0]:
-        best, chosen, shot = (err, start_from[1], start_from[2]), closure.coef.clone(), True
+    iterations = int(getattr(spec, "closure_shooting_iterations", SHOOTING_ITERATIONS_PER_TERM))
+    if iterations > 0:
+        # shooting starts from a residual fit even where the pure pullback won: from zero the search stalls in a
+        # local minimum of the phase (soft body: misfit 0.051 → 0.051; from the residual fit 0.074 → 0.012; at
+        # d = 2, multiple shooting from zero 0.047 → 0.047, from the residual fit 4.17 → 0.028)
+        closure.coef.copy_(start_from[3])
+        cost = shoot_closure(model, q, v, datamodule.dt, controls, spec.integrator, float(train.times[0]),
+                             iterations)
+        # unchanged coefficients (the search found nothing better) keep their validation error: no second rollout
+        err = val_error() if cost[1] < cost[0] else start_from[0]
+        log.info("closure by shooting from λ = %.0e: training-window misfit %.3g → %.3g of the codes' spread, "
+                 "validation field error %.4g in the horizon", start_from[1], *cost, err)
+        if err < best[0]:
+            best, chosen, shot = (err, start_from[1], start_from[2]), closure.coef.clone(), True
+    else:
+        log.info("closure shooting: none (closure_shooting_iterations = 0)")
     closure.reset()
     if chosen is not None:  # every fit has the same centre and scale (the codes'): the chosen one's coefficients suffice
         closure.coef.copy_(chosen)
@@ -109,12 +116,21 @@ def _record(best: tuple[float, float, float], pullback_error: float, shot: bool,
             "closure_misfit": best[2], "closure_shooting": float(shot), "closure_seconds": seconds}
 
 
+class _BudgetSpent(Exception):
+    """A shooting stage rolled out as often as its budget allows: the search stops there."""
+
+
 def shoot_closure(model: Any, codes: torch.Tensor, velocities: torch.Tensor, dt: float,
-                  controls: "torch.Tensor | None", integrator: Any, t0: float = 0.0) -> tuple[float, float]:
+                  controls: "torch.Tensor | None", integrator: Any, t0: float = 0.0,
+                  iterations_per_term: int = SHOOTING_ITERATIONS_PER_TERM) -> tuple[float, float]:
     """Refine the model's closure coefficients in place by shooting: Levenberg–Marquardt (scipy) on the gap between
     the closed dynamics' rollouts from encoded training states (q̃, q̃̇) and the encoded codes `codes` (n, T, d, every
     `dt` [s] from `t0`), in units of the codes' spread, on :data:`SHOOTING_TRAJECTORIES` evenly spaced trajectories
-    (:data:`SHOOTING_TRAJECTORIES_EXACT` where the dynamics are not a table), under the evaluation's `integrator`.
+    (:data:`SHOOTING_TRAJECTORIES_EXACT` where the dynamics are not a table), under the evaluation's `integrator`,
+    with at most `iterations_per_term` × (terms + 1) Levenberg–Marquardt iterations in each stage. An iteration rolls
+    out once per term for its finite-difference Jacobian and once for its trial, so a stage stops after
+    `iterations_per_term` × (terms + 1)² rollouts (counted here, not by scipy: since scipy 1.16 its `max_nfev` leaves
+    the Jacobian's out) and keeps the coefficients with the smallest gap it rolled out.
     A residual fit matches the equations sample by sample; this matches their solutions, so the phase after many
     periods. Two stages: multiple shooting (windows of :data:`SHOOTING_WINDOW` samples, each rolled out from its
     own encoded start: short rollouts stay near the codes and their gap is smooth in the coefficients), then single
@@ -162,8 +178,23 @@ def shoot_closure(model: Any, codes: torch.Tensor, velocities: torch.Tensor, dt:
         return float(np.sqrt(np.mean(gap(theta, (0,), steps) ** 2)))
 
     def search(theta: np.ndarray, starts: "range | tuple[int, ...]", length: int) -> np.ndarray:
-        return least_squares(lambda x: gap(x, starts, length), theta, method="lm", x_scale="jac", diff_step=1e-3,
-                             max_nfev=SHOOTING_EVALUATIONS_PER_TERM * (len(theta) + 1)).x
+        budget = iterations_per_term * (len(theta) + 1) ** 2  # rollouts, the Jacobians' included
+        spent, best = 0, (math.inf, theta)
+
+        def counted(x: np.ndarray) -> np.ndarray:
+            nonlocal spent, best
+            if spent >= budget:
+                raise _BudgetSpent
+            spent += 1
+            residual = gap(x, starts, length)
+            cost = float(residual @ residual)
+            if cost < best[0]:
+                best = (cost, x.copy())
+            return residual
+
+        with contextlib.suppress(_BudgetSpent):
+            least_squares(counted, theta, method="lm", x_scale="jac", diff_step=1e-3, max_nfev=budget)
+        return best[1]  # the search's own end is one of the points it rolled out
 
     theta0 = closure.coef.detach().double().cpu().numpy() / unit
     # A trial trajectory that runs away from the training codes ends there: past the guard the closure's force is
@@ -180,8 +211,11 @@ def shoot_closure(model: Any, codes: torch.Tensor, velocities: torch.Tensor, dt:
         with continuation():
             candidates = [(whole(theta0), theta0)]
             starts = tuple(sorted({*range(0, steps - window + 1, window), steps - window}))  # the last ends at T
-            windowed = search(theta0, starts, window) if window < steps else theta0
-            candidates.append((whole(windowed), windowed))
+            if window < steps:
+                windowed = search(theta0, starts, window)
+                candidates.append((whole(windowed), windowed))
+            else:  # one window is the whole training window: single shooting alone
+                candidates.append(candidates[0])
             # the whole window from the better of the two: where the windows found nothing better, single shooting
             # from the start as before them
             single = search(min(candidates, key=lambda c: c[0])[1], (0,), steps)

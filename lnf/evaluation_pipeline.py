@@ -39,7 +39,10 @@ class EvaluationSpec:
     (``<split>_trajectory<i>.png``) and, unless `label` says otherwise, the rollout in messages (``<split>
     rollout``); `long_steps` > 0 adds the long-horizon energy check on the first `long_trajectories` trajectories
     at `long_dt` [s] (None: the data's spacing); `figures` trajectories get a Figure 3; `keep_fields` trajectories
-    keep their fields in the result (None: all); `progress` shows progress bars (not inside a Lightning run)."""
+    keep their fields in the result (None: all); `progress` shows progress bars (not inside a Lightning run);
+    `closure_shooting_iterations` bounds the shooting search of a closure fitted with this spec
+    (:func:`lnf.closure_choice.shoot_closure`: Levenberg–Marquardt iterations per closure term in each stage; 0: the
+    residual fit alone)."""
 
     integrator: Any = "implicit_midpoint"
     quadrature: Any = None
@@ -53,6 +56,7 @@ class EvaluationSpec:
     figures: int = 0
     keep_fields: Optional[int] = None
     progress: bool = False
+    closure_shooting_iterations: int = 20
 
     def __post_init__(self) -> None:
         for key, rule in EVALUATION_RULES.items():

@@ -326,7 +326,8 @@ def rollout_request(cfg: DictConfig, model: Any, split: Any, path: Path,
                           max_reduction_points=None if cfg.max_reduction_points is None else
                           int(cfg.max_reduction_points), decoding=str(cfg.get("decoding", "auto")),
                           long_steps=int(cfg.long_steps), long_trajectories=int(cfg.long_trajectories),
-                          figures=int(cfg.figures), keep_fields=int(cfg.figures), progress=True)
+                          figures=int(cfg.figures), keep_fields=int(cfg.figures), progress=True,
+                          closure_shooting_iterations=int(cfg.get("closure_shooting_iterations", 20)))
     if stored_times and stored_grid:  # the stored trajectories as they are
         data = EvaluationData.of_split(split, scene, n, grid_shape=grid_shape)
         data.train_horizon = train_horizon

@@ -96,6 +96,8 @@ EVALUATION_RULES: dict[str, tuple] = {
     "long_trajectories": ("int", 1, None, "trajectories of the long-horizon energy check"),
     "figures": ("int", 0, None, "how many trajectories get a Figure 3; 0 draws none"),
     "max_reduction_points": ("int", 1, None, "evaluation points that ρ̃ uses", "", "all of them"),
+    "closure_shooting_iterations": ("int", 0, None, "Levenberg–Marquardt iterations per closure term in each stage "
+                                    "of a closure fit's shooting search; 0 keeps the residual fit"),
 }
 NUMBER_RULES.update({f"evaluation.{key}": rule for key, rule in EVALUATION_RULES.items()})
 NUMBER_RULES.update({f"evaluation.{key}": ("int", low, None, "") for key, low in  # the training's validation rollouts

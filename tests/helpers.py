@@ -20,7 +20,8 @@ TINY = ["data.n_train=3", "data.n_val=1", "data.n_test=2", "data.n_times=20", "d
         "data.fine_resolution=12", "data.coarse_resolution=8", "data.batch_size=8", "model.width=16",
         "model.hyper_width=8", "evaluation.long_steps=20", "evaluation.long_trajectories=1",
         "evaluation.every_n_epochs=1", "evaluation.val_trajectories=1", "evaluation.val_resolution=8",
-        "evaluation.figures=1", "evaluation.max_reduction_points=64", "quadrature.order=4"]
+        "evaluation.figures=1", "evaluation.max_reduction_points=64", "quadrature.order=4",
+        "evaluation.closure_shooting_iterations=1"]
 # for runs whose tests read only checkpoints, files and metrics.json: no figure, validation rollout or long-horizon
 # check (a run compared with another gets the same overrides)
 METRICS_ONLY = ["evaluation.figures=0", "evaluation.every_n_epochs=0", "evaluation.long_steps=0"]

@@ -143,6 +143,8 @@ def test_a_run_fits_the_closure_and_its_checkpoint_loads_with_it(tmp_path):
     run = tmp_path / "run"
     run_cli(["+experiment=pendulum", "trainer=smoke", "trainer.max_epochs=2", "logger=csv", "threads=1", *TINY,
              "model.closure_degree=3", "evaluation.val_trajectories=1",
+             # a two-epoch model's trial closures are stiff: 4 automatic substeps at most, not 64
+             "integrator.max_substeps=4",
              # the closure and its metrics are what is checked: no figures, validation epochs or long-horizon check
              *METRICS_ONLY,
              f"hydra.run.dir={run}"], tmp_path)
@@ -158,20 +160,23 @@ def test_a_run_fits_the_closure_and_its_checkpoint_loads_with_it(tmp_path):
     out = tmp_path / "ablation"
     env = {**os.environ, "LNF_ROOT": str(tmp_path)}
     proc = subprocess.run([sys.executable, "-m", "experiments.closure_ablation", "--ckpt",
-                           str(run / "checkpoints" / "last.ckpt"), "--degree", "2", "--threads", "1", "--out", str(out)],
+                           str(run / "checkpoints" / "last.ckpt"), "--degree", "2", "--threads", "1", "--out", str(out),
+                           "--shooting-iterations", "0"],  # its shooting: in the run above and the tests below
                           cwd=ROOT, env=env, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]
     row = json.loads((out / "closure.json").read_text())["rows"][0]
     assert row["degree"] == 2 and set(row["plain"]) == set(row["closed"]) and "after horizon" in (out / "summary.md").read_text()
-    # lnf.evaluate fits one on the checkpoint's training trajectories first, and refuses a degree below 2 by name
+    # lnf.evaluate fits one on the checkpoint's training trajectories first (here the residual fit alone: no
+    # shooting search), and refuses a degree below 2 and a negative shooting budget by name
     evaluated = tmp_path / "evaluated"
     common = [sys.executable, "-m", "lnf.evaluate", f"ckpt_path={run / 'checkpoints' / 'last.ckpt'}", "figures=0",
               "threads=1"]
-    proc = subprocess.run([*common, "closure_degree=2", f"hydra.run.dir={evaluated}"], cwd=ROOT, env=env,
-                          capture_output=True, text=True, timeout=600)
+    proc = subprocess.run([*common, "closure_degree=2", "closure_shooting_iterations=0", f"hydra.run.dir={evaluated}"],
+                          cwd=ROOT, env=env, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]
     fitted = json.loads((evaluated / "metrics.json").read_text())
     assert fitted["closure_val_error"] <= fitted["closure_pullback_val_error"] and "field_rel_l2/all/median" in fitted
+    assert fitted["closure_shooting"] == 0 and "closure shooting: none" in proc.stdout + proc.stderr
     # the two refusals in this process (the settings check lnf.evaluate runs first; the script's argument check)
     from experiments import closure_ablation
     from lnf.evaluation_settings import check_settings
@@ -180,6 +185,10 @@ def test_a_run_fits_the_closure_and_its_checkpoint_loads_with_it(tmp_path):
     with pytest.raises(ValueError) as refused:
         check_settings(cfg)
     assert "closure_degree" in str(refused.value) and "≥ 2" in str(refused.value)
+    cfg = compose_config("evaluate", [f"ckpt_path={run / 'checkpoints' / 'last.ckpt'}", "closure_degree=2",
+                                      "closure_shooting_iterations=-1"], tmp_path)
+    with pytest.raises(ValueError, match="closure_shooting_iterations"):
+        check_settings(cfg)
     with pytest.raises(SystemExit) as bad:
         closure_ablation.main(["--ckpt", str(tmp_path / "none.ckpt")])
     assert "--ckpt: no such file" in str(bad.value.code)
@@ -258,6 +267,34 @@ def test_multiple_shooting_escapes_the_phase_minimum_that_stalls_single_shooting
         fitted, start, end = shoot(10, conservative)
         assert end < 1e-6 * start
         torch.testing.assert_close(fitted.coef, truth.coef, rtol=1e-6, atol=1e-8)
+
+
+def test_a_shooting_stage_stops_after_its_budget_of_rollouts_and_keeps_its_best(monkeypatch):
+    """closure_shooting_iterations = k allows k × (terms + 1)² rollouts per stage, the finite-difference Jacobians'
+    included (scipy's own max_nfev leaves them out since 1.16), and the stage keeps the best point it rolled out."""
+    from lnf import closure_choice
+
+    truth = PotentialClosure(1, 2).double()
+    truth.coef.copy_(torch.tensor([0.0, 1.5]))
+    truth.scale.fill_(2.0)
+    q0 = torch.tensor([[0.5], [-0.8]], dtype=torch.float64)
+    motion = get_integrator("rk4").integrate(ClosedDynamics(_UnitSpring(), truth), q0, torch.zeros_like(q0), 0.1, 40)
+    monkeypatch.setattr(closure_choice, "SHOOTING_WINDOW", 10)
+    for iterations in (1, 3):
+        fitted = PotentialClosure(1, 2).double()
+        fitted.scale.fill_(2.0)
+        model = _ClosedModel(_UnitSpring(), fitted)
+        calls = []
+        rollout = model.rollout
+        model.rollout = lambda *a, **k: calls.append(k["steps"]) or rollout(*a, **k)
+        start, end = closure_choice.shoot_closure(model, motion.q, motion.v, 0.1, None, "rk4", iterations_per_term=iterations)
+        windowed, single = calls.count(10), calls.count(40) - 3  # three whole-window gaps: start, after each stage
+        budget = iterations * 3 ** 2  # two terms: (2 + 1)² rollouts per iteration and term
+        if iterations == 1:  # the budget binds: both stages spend it all
+            assert windowed == single == budget
+        else:  # more room: more rollouts, up to the budget, until the search converges
+            assert 9 < windowed <= budget and single <= budget
+        assert end < start
 
 
 def test_the_closure_fit_reads_a_forced_scenes_loads_where_the_file_stores_none(tmp_path, monkeypatch):

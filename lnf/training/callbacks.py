@@ -39,12 +39,16 @@ class RolloutEvaluationCallback(pl.Callback):
             evaluation points (decoding and errors use all of them).
         decoding: ``auto`` | ``exact`` | ``tabulated``: how test and validation frames are decoded
             (:func:`lnf.evaluation.evaluate_rollouts`).
+        closure_shooting_iterations: the budget of the closure's shooting search after training (Levenberg–Marquardt
+            iterations per closure term in each stage; 0: the residual fit alone), see
+            :func:`lnf.closure_choice.shoot_closure`.
     """
 
     def __init__(self, integrator: "Integrator | dict | str" = "implicit_midpoint", output_dir: str = ".",
                  every_n_epochs: int = 5, val_trajectories: int = 4, val_resolution: int = 32,
                  long_steps: int = 10000, long_trajectories: int = 4, long_dt: float = 0.05,
-                 figures: int = 2, max_reduction_points: Optional[int] = 1024, decoding: str = "auto") -> None:
+                 figures: int = 2, max_reduction_points: Optional[int] = 1024, decoding: str = "auto",
+                 closure_shooting_iterations: int = 20) -> None:
         super().__init__()
         try:
             self.integrator = get_integrator(integrator)
@@ -56,7 +60,8 @@ class RolloutEvaluationCallback(pl.Callback):
         self.val_resolution = require("evaluation.val_resolution", val_resolution)
         self.spec = EvaluationSpec(integrator=self.integrator, split="test", max_reduction_points=max_reduction_points,
                                    decoding=decoding, long_steps=long_steps, long_trajectories=long_trajectories,
-                                   long_dt=long_dt, figures=figures)
+                                   long_dt=long_dt, figures=figures,
+                                   closure_shooting_iterations=closure_shooting_iterations)
         self.report: Optional[EvaluationReport] = None
         self._val_count = 0
 
