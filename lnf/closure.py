@@ -77,13 +77,27 @@ class PotentialClosure(nn.Module):
         d = len(self.center)
         return tuple(int(k == i) + int(k == j) for k in range(d))
 
-    def potential(self, q: Tensor) -> Tensor:
-        """ΔṼ (B,) at codes (B, d)."""
+    def _coefficients(self, x: Tensor, coef: Optional[Tensor]) -> Tensor:
+        """The coefficients (P,) or one row per code (B, P) (`coef`; None: the closure's own), in x's dtype."""
+        if coef is None:
+            return self.coef.to(x)
+        if coef.ndim != 2 or coef.shape != (x.shape[0], len(self.coef)):
+            raise ValueError(f"per-code closure coefficients must have shape ({x.shape[0]}, {len(self.coef)}), "
+                             f"got {tuple(coef.shape)}")
+        return coef.to(x)
+
+    @staticmethod
+    def _combine(basis: Tensor, coef: Tensor) -> Tensor:
+        """Σ_p basis[:, p] θ_p (B,) for shared (P,) or per-code (B, P) coefficients."""
+        return basis @ coef if coef.ndim == 1 else (basis * coef).sum(-1)
+
+    def potential(self, q: Tensor, coef: Optional[Tensor] = None) -> Tensor:
+        """ΔṼ (B,) at codes (B, d); `coef` (B, P): each code's own coefficients (None: the closure's)."""
         x, inside = self._scaled(q)
-        coef = self.coef.to(x)
-        value = self._derivatives(inside, (0,) * x.shape[1]) @ coef
+        coef = self._coefficients(x, coef)
+        value = self._combine(self._derivatives(inside, (0,) * x.shape[1]), coef)
         for i in range(x.shape[1]):  # the first-order continuation beyond the box (zero inside it)
-            value = value + (self._derivatives(inside, self._unit(i)) @ coef) * (x[:, i] - inside[:, i])
+            value = value + self._combine(self._derivatives(inside, self._unit(i)), coef) * (x[:, i] - inside[:, i])
         return value
 
     def basis_gradients(self, q: Tensor) -> Tensor:
@@ -91,18 +105,19 @@ class PotentialClosure(nn.Module):
         x, _ = self._scaled(q)
         return torch.stack([self._derivatives(x, self._unit(i)) / self.scale[i].to(x) for i in range(x.shape[1])], 1)
 
-    def gradient(self, q: Tensor) -> Tensor:
+    def gradient(self, q: Tensor, coef: Optional[Tensor] = None) -> Tensor:
         """∇ΔṼ (B, d) at codes (B, d), the continuation's beyond the box: the polynomial's gradient at the nearest
         point of the box, plus, along each variable still inside it, the change of that gradient across the gap
-        (NaN beyond a guard, :meth:`set_guard`)."""
+        (NaN beyond a guard, :meth:`set_guard`); `coef` (B, P): each code's own coefficients (None: the closure's)."""
         x, inside = self._scaled(q)
-        coef, gap = self.coef.to(x), x - inside
+        coef, gap = self._coefficients(x, coef), x - inside
         cols = []
         for i in range(x.shape[1]):
-            col = self._derivatives(inside, self._unit(i)) @ coef
+            col = self._combine(self._derivatives(inside, self._unit(i)), coef)
             for j in range(x.shape[1]):
                 if j != i:  # gap_i = 0 where variable i is free; ∂²/∂x_i∂x_j × gap_j there (zero inside the box)
-                    col = col + (self._derivatives(inside, self._unit(i, j)) @ coef) * gap[:, j] * (gap[:, i] == 0)
+                    col = col + self._combine(self._derivatives(inside, self._unit(i, j)), coef) * gap[:, j] \
+                        * (gap[:, i] == 0)
             cols.append(col / self.scale[i].to(x))
         return self._guarded(q, torch.stack(cols, 1))
 
@@ -148,33 +163,57 @@ class PotentialClosure(nn.Module):
 
 class ClosedDynamics:
     """A reduced dynamics (exact or tabulated pullback) with a fitted potential closure ΔṼ added: forces −∇ΔṼ,
-    energies + ΔṼ. Everything else (the mass, loads through ``controls``, table counters) is the base's."""
+    energies + ΔṼ. Everything else (the mass, loads through ``controls``, table counters) is the base's.
+
+    :meth:`set_row_coefficients` gives each row of the next rollouts its own closure coefficients (the shooting's
+    finite-difference Jacobian as one batched rollout). They travel with the loads in ``controls``: the integrators
+    hand ``controls`` row by row to the rows they solve (Newton's method on a subset), so the coefficients follow."""
 
     def __init__(self, base: Any, closure: PotentialClosure) -> None:
-        self.__dict__["base"] = base
-        self.__dict__["closure"] = closure
+        self.__dict__.update(base=base, closure=closure, row_coef=None, _load_columns=0)
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self.base, name)
 
     def __setattr__(self, name: str, value: Any) -> None:  # e.g. controls: the base's forces read them
+        if name == "controls" and self.row_coef is not None:  # (loads | coefficients), as `controls` gave them
+            columns = self._load_columns
+            self.__dict__["row_coef"] = value[:, columns:]
+            if columns:
+                self.base.controls = value[:, :columns]
+            return
         setattr(self.base, name, value)
 
+    @property
+    def controls(self) -> Optional[Tensor]:
+        """The base's loads (B, c), with the per-row closure coefficients (B, P) appended while they are set."""
+        loads = getattr(self.base, "controls", None) if self.row_coef is not None else self.base.controls
+        if self.row_coef is None or loads is None:
+            return self.row_coef if loads is None else loads
+        return torch.cat([loads.to(self.row_coef), self.row_coef], 1)
+
+    def set_row_coefficients(self, coef: Optional[Tensor]) -> None:
+        """Closure coefficients (B, P) for each row of the next rollouts, or None (the closure's own). Set the base's
+        loads (if any) first: they keep their columns of ``controls``."""
+        loads = getattr(self.base, "controls", None)
+        self.__dict__["_load_columns"] = 0 if loads is None else loads.shape[1]
+        self.__dict__["row_coef"] = coef
+
     def acceleration(self, q: Tensor, v: Tensor, t: float = 0.0) -> Tensor:
-        extra = self.closure.gradient(q)
+        extra = self.closure.gradient(q, self.row_coef)
         return self.base.acceleration(q, v, t, extra_force=-extra)  # with the base's own M̃ (no second jet)
 
     def hamiltonian_derivatives(self, q: Tensor, p: Tensor, t: float = 0.0) -> tuple[Tensor, Tensor]:
-        extra = self.closure.gradient(q)
+        extra = self.closure.gradient(q, self.row_coef)
         v, force = self.base.hamiltonian_derivatives(q, p, t)
         return v, force - extra
 
     def potential_energy(self, q: Tensor) -> Tensor:
-        return self.base.potential_energy(q) + self.closure.potential(q)
+        return self.base.potential_energy(q) + self.closure.potential(q, self.row_coef)
 
     def energies(self, q: Tensor, v: Tensor) -> tuple[Tensor, Tensor]:
         kinetic, potential = self.base.energies(q, v)
-        extra = self.closure.potential(q.reshape(-1, q.shape[-1])).reshape(potential.shape)
+        extra = self.closure.potential(q.reshape(-1, q.shape[-1]), self.row_coef).reshape(potential.shape)
         return kinetic, potential + extra
 
 

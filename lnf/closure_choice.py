@@ -128,9 +128,10 @@ def shoot_closure(model: Any, codes: torch.Tensor, velocities: torch.Tensor, dt:
     `dt` [s] from `t0`), in units of the codes' spread, on :data:`SHOOTING_TRAJECTORIES` evenly spaced trajectories
     (:data:`SHOOTING_TRAJECTORIES_EXACT` where the dynamics are not a table), under the evaluation's `integrator`,
     with at most `iterations_per_term` × (terms + 1) Levenberg–Marquardt iterations in each stage. An iteration rolls
-    out once per term for its finite-difference Jacobian and once for its trial, so a stage stops after
-    `iterations_per_term` × (terms + 1)² rollouts (counted here, not by scipy: since scipy 1.16 its `max_nfev` leaves
-    the Jacobian's out) and keeps the coefficients with the smallest gap it rolled out.
+    out terms + 1 coefficient vectors for its finite-difference Jacobian (one batched rollout: each block of rows
+    its own coefficients) and one for its trial, so a stage stops before it would pass `iterations_per_term` ×
+    (terms + 1)² coefficient vectors (counted here, not by scipy: since scipy 1.16 its `max_nfev` leaves the
+    Jacobian's evaluations out) and keeps the coefficients with the smallest gap it rolled out.
     A residual fit matches the equations sample by sample; this matches their solutions, so the phase after many
     periods. Two stages: multiple shooting (windows of :data:`SHOOTING_WINDOW` samples, each rolled out from its
     own encoded start: short rollouts stay near the codes and their gap is smooth in the coefficients), then single
@@ -161,39 +162,58 @@ def shoot_closure(model: Any, codes: torch.Tensor, velocities: torch.Tensor, dt:
     # without non-conservative forces the reduced equations do not depend on t: every window is a row of one rollout
     autonomous = bool(getattr(getattr(model, "scene", None), "is_conservative", False))
 
-    def gap(theta: np.ndarray, starts: "range | tuple[int, ...]", length: int) -> np.ndarray:
-        closure.coef.copy_(torch.as_tensor(theta * unit, dtype=closure.coef.dtype))
+    def gaps(thetas: np.ndarray, starts: "range | tuple[int, ...]", length: int) -> np.ndarray:
+        """The gaps (K, M) of K coefficient vectors `thetas` (K, P), all in one batched rollout per group of windows:
+        block k of its rows runs under θ_k (ClosedDynamics.set_row_coefficients)."""
+        coef = torch.as_tensor(thetas * unit, dtype=closure.coef.dtype)
         groups = [tuple(starts)] if autonomous else [(s,) for s in starts]  # a forced scene's loads depend on t
         out = []
-        for group in groups:
-            first = torch.cat([q[:, s] for s in group]), torch.cat([v[:, s] for s in group])
-            traj = model.rollout(*first, dt=dt, steps=length, integrator=integrator, t0=t0 + group[0] * dt,
-                                 on_divergence="mark", dynamics=dynamics,
-                                 controls=None if forces is None else forces.repeat(len(group), 1))
-            target = torch.cat([q[:, s:s + length + 1] for s in group])
-            out.append(((traj.q - target) / spread).double().cpu().numpy().ravel())
-        return np.nan_to_num(np.concatenate(out), nan=10.0, posinf=10.0, neginf=-10.0)
+        try:
+            for group in groups:
+                first = torch.cat([q[:, s] for s in group]), torch.cat([v[:, s] for s in group])
+                rows = len(first[0])
+                if forces is not None:  # the loads first: the coefficients ride behind them in `controls`
+                    dynamics.controls = forces.repeat(len(group) * len(coef), 1).to(q)
+                dynamics.set_row_coefficients(coef.repeat_interleave(rows, 0))
+                traj = model.rollout(first[0].repeat(len(coef), 1), first[1].repeat(len(coef), 1), dt=dt,
+                                     steps=length, integrator=integrator, t0=t0 + group[0] * dt,
+                                     on_divergence="mark", dynamics=dynamics)
+                target = torch.cat([q[:, s:s + length + 1] for s in group])
+                diff = (traj.q.reshape(len(coef), *target.shape) - target) / spread
+                out.append(diff.double().cpu().numpy().reshape(len(coef), -1))
+        finally:
+            dynamics.set_row_coefficients(None)
+        return np.nan_to_num(np.concatenate(out, 1), nan=10.0, posinf=10.0, neginf=-10.0)
 
     def whole(theta: np.ndarray) -> float:
-        return float(np.sqrt(np.mean(gap(theta, (0,), steps) ** 2)))
+        return float(np.sqrt(np.mean(gaps(theta[None], (0,), steps) ** 2)))
 
     def search(theta: np.ndarray, starts: "range | tuple[int, ...]", length: int) -> np.ndarray:
-        budget = iterations_per_term * (len(theta) + 1) ** 2  # rollouts, the Jacobians' included
+        n = len(theta)
+        budget = iterations_per_term * (n + 1) ** 2  # coefficient vectors rolled out, the Jacobians' included
         spent, best = 0, (math.inf, theta)
 
-        def counted(x: np.ndarray) -> np.ndarray:
+        def spend(count: int, points: np.ndarray) -> np.ndarray:
             nonlocal spent, best
-            if spent >= budget:
+            if spent + count > budget:
                 raise _BudgetSpent
-            spent += 1
-            residual = gap(x, starts, length)
-            cost = float(residual @ residual)
-            if cost < best[0]:
-                best = (cost, x.copy())
-            return residual
+            spent += count
+            residuals = gaps(points, starts, length)
+            costs = (residuals ** 2).sum(1)
+            if costs.min() < best[0]:
+                best = (float(costs.min()), points[int(costs.argmin())].copy())
+            return residuals
+
+        def jacobian(x: np.ndarray) -> np.ndarray:
+            # forward differences (scipy's 2-point rule, step 10⁻³ · max(1, |θ_k|)), the n columns and their base
+            # point in one batched rollout: n + 1 rollouts of the budget
+            h = 1e-3 * np.where(x >= 0, 1.0, -1.0) * np.maximum(1.0, np.abs(x))
+            r = spend(n + 1, np.vstack([x, x + np.diag(h)]))
+            return ((r[1:] - r[0]) / h[:, None]).T
 
         with contextlib.suppress(_BudgetSpent):
-            least_squares(counted, theta, method="lm", x_scale="jac", diff_step=1e-3, max_nfev=budget)
+            least_squares(lambda x: spend(1, x[None])[0], theta, jac=jacobian, method="lm", x_scale="jac",
+                          max_nfev=budget)
         return best[1]  # the search's own end is one of the points it rolled out
 
     theta0 = closure.coef.detach().double().cpu().numpy() / unit

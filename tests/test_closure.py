@@ -207,7 +207,7 @@ class _ClosedModel:
     def dynamics(self):  # as ReducedModel.dynamics: closed only while the closure is active
         return ClosedDynamics(self.base, self.closure) if self.closure.active else self.base
 
-    def rollout(self, q0, v0, dt, steps, integrator, on_divergence, dynamics, controls, t0=0.0):
+    def rollout(self, q0, v0, dt, steps, integrator, on_divergence, dynamics, controls=None, t0=0.0):
         return get_integrator(integrator).integrate(dynamics, q0, v0, dt, steps, t0=t0, on_divergence=on_divergence)
 
 
@@ -269,9 +269,72 @@ def test_multiple_shooting_escapes_the_phase_minimum_that_stalls_single_shooting
         torch.testing.assert_close(fitted.coef, truth.coef, rtol=1e-6, atol=1e-8)
 
 
+class _LoadedSpring:
+    """q̈ = −q + a cos t (+ the closure's force), unit mass; the loads a (B, 1) in `controls`, as a forced scene's."""
+
+    def __init__(self):
+        self.controls = None
+
+    def _load(self, t):
+        return self.controls[:, :1] * torch.cos(torch.as_tensor(t, dtype=self.controls.dtype))
+
+    def acceleration(self, q, v, t=0.0, extra_force=None):
+        force = -q + self._load(t)
+        return force if extra_force is None else force + extra_force
+
+    def hamiltonian_derivatives(self, q, p, t=0.0):
+        return p, -q + self._load(t)
+
+    def velocity(self, q, p):
+        return p
+
+    def momentum(self, q, v):
+        return v
+
+    def potential_energy(self, q):
+        return 0.5 * (q ** 2).sum(-1)
+
+
+def test_per_row_closure_coefficients_roll_out_as_separate_closures_through_newtons_row_subsets():
+    """One batched rollout whose blocks of rows each carry their own closure coefficients (the shooting's Jacobian)
+    gives each block the trajectory of a rollout with that closure alone, loads included, also where a stiff block
+    sends only its rows to Newton's method (which hands them `controls` row by row)."""
+    from lnf.integrators import ImplicitMidpoint
+
+    thetas = torch.tensor([[0.0, 0.5], [0.1, 2.0], [0.0, 400.0]], dtype=torch.float64)  # the last: ω ≈ 28 at h = 0.1
+    q0 = torch.tensor([[0.5], [-0.3]], dtype=torch.float64)
+    loads = torch.tensor([[0.2], [-0.4]], dtype=torch.float64)
+
+    def closure(coef):
+        c = PotentialClosure(1, 2).double()
+        c.scale.fill_(2.0)
+        c.coef.copy_(coef)
+        return c
+
+    def roll(dynamics, q, rows_loads):
+        dynamics.controls = rows_loads
+        integ = ImplicitMidpoint(order=2, max_substeps=1)
+        return integ.integrate(dynamics, q, torch.zeros_like(q), 0.1, 12, on_divergence="mark"), integ
+
+    batched = ClosedDynamics(_LoadedSpring(), closure(torch.zeros(2)))
+    batched.controls = loads.repeat(3, 1)
+    batched.set_row_coefficients(thetas.repeat_interleave(2, 0))
+    assert batched.controls.shape == (6, 3)  # the loads, then the coefficients
+    together, integ = roll(batched, q0.repeat(3, 1), batched.controls)
+    assert integ.newton_solves > 0  # the stiff block went to Newton's method
+    batched.set_row_coefficients(None)
+    torch.testing.assert_close(batched.controls, loads.repeat(3, 1))  # the base keeps its loads
+    for k, theta in enumerate(thetas):
+        alone, _ = roll(ClosedDynamics(_LoadedSpring(), closure(theta)), q0, loads)
+        torch.testing.assert_close(together.q[2 * k:2 * k + 2], alone.q, rtol=1e-9, atol=1e-12)
+    with pytest.raises(ValueError, match=r"shape \(6, 2\)"):
+        closure(thetas[0]).gradient(q0.repeat(3, 1), thetas)
+
+
 def test_a_shooting_stage_stops_after_its_budget_of_rollouts_and_keeps_its_best(monkeypatch):
-    """closure_shooting_iterations = k allows k × (terms + 1)² rollouts per stage, the finite-difference Jacobians'
-    included (scipy's own max_nfev leaves them out since 1.16), and the stage keeps the best point it rolled out."""
+    """closure_shooting_iterations = k allows k × (terms + 1)² coefficient vectors rolled out per stage, the
+    finite-difference Jacobians' included (scipy's own max_nfev leaves them out since 1.16; here each Jacobian is
+    one batched rollout of terms + 1 vectors), and the stage keeps the best point it rolled out."""
     from lnf import closure_choice
 
     truth = PotentialClosure(1, 2).double()
@@ -284,16 +347,20 @@ def test_a_shooting_stage_stops_after_its_budget_of_rollouts_and_keeps_its_best(
         fitted = PotentialClosure(1, 2).double()
         fitted.scale.fill_(2.0)
         model = _ClosedModel(_UnitSpring(), fitted)
-        calls = []
-        rollout = model.rollout
-        model.rollout = lambda *a, **k: calls.append(k["steps"]) or rollout(*a, **k)
+        vectors = {10: 0, 40: -3}  # coefficient vectors rolled out per window length (three whole-window gaps:
+        rollout = model.rollout  # the start, and after each stage)
+
+        def counted(q0, *a, **k):  # 2 trajectories: 2 rows per vector over the whole window, 8 over 4 windows
+            vectors[k["steps"]] += len(q0) // (2 if k["steps"] == 40 else 8)
+            return rollout(q0, *a, **k)
+
+        model.rollout = counted
         start, end = closure_choice.shoot_closure(model, motion.q, motion.v, 0.1, None, "rk4", iterations_per_term=iterations)
-        windowed, single = calls.count(10), calls.count(40) - 3  # three whole-window gaps: start, after each stage
-        budget = iterations * 3 ** 2  # two terms: (2 + 1)² rollouts per iteration and term
-        if iterations == 1:  # the budget binds: both stages spend it all
-            assert windowed == single == budget
-        else:  # more room: more rollouts, up to the budget, until the search converges
-            assert 9 < windowed <= budget and single <= budget
+        budget = iterations * 3 ** 2  # two terms: (2 + 1)² vectors per iteration and term
+        if iterations == 1:  # the budget binds: the next Jacobian (3 vectors) would pass it
+            assert budget - 3 < vectors[10] <= budget and budget - 3 < vectors[40] <= budget
+        else:  # more room: more vectors, up to the budget, until the search converges
+            assert 9 < vectors[10] <= budget and vectors[40] <= budget
         assert end < start
 
 
