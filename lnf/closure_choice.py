@@ -36,6 +36,8 @@ SHOOTING_GUARD_MARGIN = 1.0
 #: the shooting first fits windows of this many samples (multiple shooting: each window starts from the encoded
 #: state), then the whole training window from there
 SHOOTING_WINDOW = 10
+#: a shooting stage logs its progress at most this often [s] (the log only: the search does not depend on it)
+SHOOTING_LOG_SECONDS = 60.0
 
 
 def fit_closure(model: Any, datamodule: Any, spec: Any) -> dict[str, float]:
@@ -188,20 +190,26 @@ def shoot_closure(model: Any, codes: torch.Tensor, velocities: torch.Tensor, dt:
     def whole(theta: np.ndarray) -> float:
         return float(np.sqrt(np.mean(gaps(theta[None], (0,), steps) ** 2)))
 
-    def search(theta: np.ndarray, starts: "range | tuple[int, ...]", length: int) -> np.ndarray:
+    def search(theta: np.ndarray, starts: "range | tuple[int, ...]", length: int, stage: str) -> np.ndarray:
         n = len(theta)
         budget = iterations_per_term * (n + 1) ** 2  # coefficient vectors rolled out, the Jacobians' included
-        spent, best = 0, (math.inf, theta)
+        spent, best, size = 0, (math.inf, theta), 1
+        began = logged = time.perf_counter()
 
         def spend(count: int, points: np.ndarray) -> np.ndarray:
-            nonlocal spent, best
+            nonlocal spent, best, size, logged
             if spent + count > budget:
                 raise _BudgetSpent
             spent += count
             residuals = gaps(points, starts, length)
             costs = (residuals ** 2).sum(1)
+            size = residuals.shape[1]
             if costs.min() < best[0]:
                 best = (float(costs.min()), points[int(costs.argmin())].copy())
+            if time.perf_counter() - logged > SHOOTING_LOG_SECONDS:
+                logged = time.perf_counter()
+                log.info("closure shooting, %s: %d of %d coefficient vectors rolled out, gap %.3g spreads so far, "
+                         "%.0f s", stage, spent, budget, math.sqrt(best[0] / size), logged - began)
             return residuals
 
         def jacobian(x: np.ndarray) -> np.ndarray:
@@ -211,9 +219,12 @@ def shoot_closure(model: Any, codes: torch.Tensor, velocities: torch.Tensor, dt:
             r = spend(n + 1, np.vstack([x, x + np.diag(h)]))
             return ((r[1:] - r[0]) / h[:, None]).T
 
+        end = "its budget spent"
         with contextlib.suppress(_BudgetSpent):
-            least_squares(lambda x: spend(1, x[None])[0], theta, jac=jacobian, method="lm", x_scale="jac",
-                          max_nfev=budget)
+            end = least_squares(lambda x: spend(1, x[None])[0], theta, jac=jacobian, method="lm", x_scale="jac",
+                                max_nfev=budget).message
+        log.info("closure shooting, %s: gap %.3g spreads, %d of %d coefficient vectors rolled out, %.0f s (%s)", stage,
+                 math.sqrt(best[0] / size), spent, budget, time.perf_counter() - began, end)
         return best[1]  # the search's own end is one of the points it rolled out
 
     theta0 = closure.coef.detach().double().cpu().numpy() / unit
@@ -232,13 +243,13 @@ def shoot_closure(model: Any, codes: torch.Tensor, velocities: torch.Tensor, dt:
             candidates = [(whole(theta0), theta0)]
             starts = tuple(sorted({*range(0, steps - window + 1, window), steps - window}))  # the last ends at T
             if window < steps:
-                windowed = search(theta0, starts, window)
+                windowed = search(theta0, starts, window, f"windows of {window} samples")
                 candidates.append((whole(windowed), windowed))
             else:  # one window is the whole training window: single shooting alone
                 candidates.append(candidates[0])
             # the whole window from the better of the two: where the windows found nothing better, single shooting
             # from the start as before them
-            single = search(min(candidates, key=lambda c: c[0])[1], (0,), steps)
+            single = search(min(candidates, key=lambda c: c[0])[1], (0,), steps, "the whole window")
             candidates.append((whole(single), single))
     finally:
         closure.set_guard(None)
