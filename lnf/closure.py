@@ -170,14 +170,15 @@ class ClosedDynamics:
     hand ``controls`` row by row to the rows they solve (Newton's method on a subset), so the coefficients follow."""
 
     def __init__(self, base: Any, closure: PotentialClosure) -> None:
-        self.__dict__.update(base=base, closure=closure, row_coef=None, _load_columns=0)
+        self.__dict__.update(base=base, closure=closure, row_coef=None)
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self.base, name)
 
     def __setattr__(self, name: str, value: Any) -> None:  # e.g. controls: the base's forces read them
         if name == "controls" and self.row_coef is not None:  # (loads | coefficients), as `controls` gave them
-            columns = self._load_columns
+            loads = getattr(self.base, "controls", None)  # the loads keep their columns (a row subset, say)
+            columns = 0 if loads is None else loads.shape[1]
             self.__dict__["row_coef"] = value[:, columns:]
             if columns:
                 self.base.controls = value[:, :columns]
@@ -187,16 +188,14 @@ class ClosedDynamics:
     @property
     def controls(self) -> Optional[Tensor]:
         """The base's loads (B, c), with the per-row closure coefficients (B, P) appended while they are set."""
-        loads = getattr(self.base, "controls", None) if self.row_coef is not None else self.base.controls
-        if self.row_coef is None or loads is None:
-            return self.row_coef if loads is None else loads
-        return torch.cat([loads.to(self.row_coef), self.row_coef], 1)
+        if self.row_coef is None:
+            return self.base.controls  # an AttributeError where the base takes no loads: hasattr() says so
+        loads = getattr(self.base, "controls", None)
+        return self.row_coef if loads is None else torch.cat([loads.to(self.row_coef), self.row_coef], 1)
 
     def set_row_coefficients(self, coef: Optional[Tensor]) -> None:
         """Closure coefficients (B, P) for each row of the next rollouts, or None (the closure's own). Set the base's
         loads (if any) first: they keep their columns of ``controls``."""
-        loads = getattr(self.base, "controls", None)
-        self.__dict__["_load_columns"] = 0 if loads is None else loads.shape[1]
         self.__dict__["row_coef"] = coef
 
     def acceleration(self, q: Tensor, v: Tensor, t: float = 0.0) -> Tensor:

@@ -327,7 +327,8 @@ def rollout_request(cfg: DictConfig, model: Any, split: Any, path: Path,
                           int(cfg.max_reduction_points), decoding=str(cfg.get("decoding", "auto")),
                           long_steps=int(cfg.long_steps), long_trajectories=int(cfg.long_trajectories),
                           figures=int(cfg.figures), keep_fields=int(cfg.figures), progress=True,
-                          closure_shooting_iterations=int(cfg.get("closure_shooting_iterations", 20)))
+                          closure_shooting_iterations=int(cfg.get("closure_shooting_iterations",
+                                                                    EvaluationSpec.closure_shooting_iterations)))
     if stored_times and stored_grid:  # the stored trajectories as they are
         data = EvaluationData.of_split(split, scene, n, grid_shape=grid_shape)
         data.train_horizon = train_horizon

@@ -48,7 +48,7 @@ class RolloutEvaluationCallback(pl.Callback):
                  every_n_epochs: int = 5, val_trajectories: int = 4, val_resolution: int = 32,
                  long_steps: int = 10000, long_trajectories: int = 4, long_dt: float = 0.05,
                  figures: int = 2, max_reduction_points: Optional[int] = 1024, decoding: str = "auto",
-                 closure_shooting_iterations: int = 20) -> None:
+                 closure_shooting_iterations: int = EvaluationSpec.closure_shooting_iterations) -> None:
         super().__init__()
         try:
             self.integrator = get_integrator(integrator)
