@@ -96,7 +96,7 @@ class PotentialClosure(nn.Module):
         x, inside = self._scaled(q)
         coef = self._coefficients(x, coef)
         value = self._combine(self._derivatives(inside, (0,) * x.shape[1]), coef)
-        for i in range(x.shape[1]):  # the first-order continuation beyond the box (zero inside it)
+        for i in (i for i, out in enumerate((x != inside).any(0).tolist()) if out):  # the continuation beyond the box
             value = value + self._combine(self._derivatives(inside, self._unit(i)), coef) * (x[:, i] - inside[:, i])
         return value
 
@@ -111,11 +111,11 @@ class PotentialClosure(nn.Module):
         (NaN beyond a guard, :meth:`set_guard`); `coef` (B, P): each code's own coefficients (None: the closure's)."""
         x, inside = self._scaled(q)
         coef, gap = self._coefficients(x, coef), x - inside
-        cols = []
+        cols, beyond = [], gap.ne(0).any(0).tolist()  # the variables some code has left the box along
         for i in range(x.shape[1]):
             col = self._combine(self._derivatives(inside, self._unit(i)), coef)
             for j in range(x.shape[1]):
-                if j != i:  # gap_i = 0 where variable i is free; ∂²/∂x_i∂x_j × gap_j there (zero inside the box)
+                if j != i and beyond[j]:  # gap_i = 0 where variable i is free; ∂²/∂x_i∂x_j × gap_j there
                     col = col + self._combine(self._derivatives(inside, self._unit(i, j)), coef) * gap[:, j] \
                         * (gap[:, i] == 0)
             cols.append(col / self.scale[i].to(x))

@@ -31,6 +31,10 @@ CLOSURE_VAL_TRAJECTORIES = 8
 #: each stage by default (``evaluation.closure_shooting_iterations``)
 SHOOTING_TRAJECTORIES, SHOOTING_TRAJECTORIES_EXACT = 16, 4
 SHOOTING_ITERATIONS_PER_TERM = EvaluationSpec.closure_shooting_iterations
+#: a stage's budget counts at most this many terms (d = 2 at degree 4): with more (34 at d = 3, 69 at d = 4) it stays
+#: at iterations × 15² coefficient vectors, so fewer Levenberg–Marquardt iterations, each a rollout of terms + 1
+#: vectors (20 · 35² = 24 500 at d = 3 before: the actuated cantilever's d = 3 shooting ran past 47 min unfinished)
+SHOOTING_BUDGET_TERMS = 14
 #: a shooting trial whose rollout leaves the training codes by more than this fraction of their span ends there
 SHOOTING_GUARD_MARGIN = 1.0
 #: the shooting first fits windows of this many samples (multiple shooting: each window starts from the encoded
@@ -129,11 +133,13 @@ def shoot_closure(model: Any, codes: torch.Tensor, velocities: torch.Tensor, dt:
     the closed dynamics' rollouts from encoded training states (q̃, q̃̇) and the encoded codes `codes` (n, T, d, every
     `dt` [s] from `t0`), in units of the codes' spread, on :data:`SHOOTING_TRAJECTORIES` evenly spaced trajectories
     (:data:`SHOOTING_TRAJECTORIES_EXACT` where the dynamics are not a table), under the evaluation's `integrator`,
-    with at most `iterations_per_term` × (terms + 1) Levenberg–Marquardt iterations in each stage. An iteration rolls
-    out terms + 1 coefficient vectors for its finite-difference Jacobian (one batched rollout: each block of rows
-    its own coefficients) and one for its trial, so a stage stops before it would pass `iterations_per_term` ×
-    (terms + 1)² coefficient vectors (counted here, not by scipy: since scipy 1.16 its `max_nfev` leaves the
-    Jacobian's evaluations out) and keeps the coefficients with the smallest gap it rolled out.
+    with a budget of `iterations_per_term` × (m + 1)² coefficient vectors rolled out in each stage, m = min(terms,
+    :data:`SHOOTING_BUDGET_TERMS`): an iteration of Levenberg–Marquardt rolls out terms + 1 vectors for its
+    finite-difference Jacobian (one batched rollout: each block of rows its own coefficients) and one for its trial,
+    so up to that many terms it has `iterations_per_term` × (terms + 1) iterations, and beyond them fewer: the
+    stage's cost stops growing with the terms. The vectors are counted here, not by scipy (since scipy 1.16 its
+    `max_nfev` leaves the Jacobian's evaluations out); a stage stops before it would pass its budget and keeps the
+    coefficients with the smallest gap it rolled out.
     A residual fit matches the equations sample by sample; this matches their solutions, so the phase after many
     periods. Two stages: multiple shooting (windows of :data:`SHOOTING_WINDOW` samples, each rolled out from its
     own encoded start: short rollouts stay near the codes and their gap is smooth in the coefficients), then single
@@ -192,7 +198,7 @@ def shoot_closure(model: Any, codes: torch.Tensor, velocities: torch.Tensor, dt:
 
     def search(theta: np.ndarray, starts: "range | tuple[int, ...]", length: int, stage: str) -> np.ndarray:
         n = len(theta)
-        budget = iterations_per_term * (n + 1) ** 2  # coefficient vectors rolled out, the Jacobians' included
+        budget = iterations_per_term * (min(n, SHOOTING_BUDGET_TERMS) + 1) ** 2  # vectors, the Jacobians' included
         spent, best, size = 0, (math.inf, theta), 1
         began = logged = time.perf_counter()
 

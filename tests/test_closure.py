@@ -332,9 +332,10 @@ def test_per_row_closure_coefficients_roll_out_as_separate_closures_through_newt
 
 
 def test_a_shooting_stage_stops_after_its_budget_of_rollouts_and_keeps_its_best(monkeypatch, caplog):
-    """closure_shooting_iterations = k allows k × (terms + 1)² coefficient vectors rolled out per stage, the
-    finite-difference Jacobians' included (scipy's own max_nfev leaves them out since 1.16; here each Jacobian is
-    one batched rollout of terms + 1 vectors), and the stage keeps the best point it rolled out."""
+    """closure_shooting_iterations = k allows k × (m + 1)² coefficient vectors rolled out per stage, m the terms
+    counted up to SHOOTING_BUDGET_TERMS, the finite-difference Jacobians' included (scipy's own max_nfev leaves them
+    out since 1.16; here each Jacobian is one batched rollout of terms + 1 vectors), and the stage keeps the best
+    point it rolled out."""
     from lnf import closure_choice
 
     truth = PotentialClosure(1, 2).double()
@@ -344,7 +345,9 @@ def test_a_shooting_stage_stops_after_its_budget_of_rollouts_and_keeps_its_best(
     motion = get_integrator("rk4").integrate(ClosedDynamics(_UnitSpring(), truth), q0, torch.zeros_like(q0), 0.1, 40)
     monkeypatch.setattr(closure_choice, "SHOOTING_WINDOW", 10)
     caplog.set_level("INFO", logger="lnf.closure")
-    for iterations in (1, 3):
+    for iterations, counted_terms in ((1, 2), (3, 2), (3, 1)):  # counted_terms 1: the budget stops growing at 1 term
+        monkeypatch.setattr(closure_choice, "SHOOTING_BUDGET_TERMS", counted_terms)
+        caplog.clear()
         fitted = PotentialClosure(1, 2).double()
         fitted.scale.fill_(2.0)
         model = _ClosedModel(_UnitSpring(), fitted)
@@ -357,8 +360,8 @@ def test_a_shooting_stage_stops_after_its_budget_of_rollouts_and_keeps_its_best(
 
         model.rollout = counted
         start, end = closure_choice.shoot_closure(model, motion.q, motion.v, 0.1, None, "rk4", iterations_per_term=iterations)
-        budget = iterations * 3 ** 2  # two terms: (2 + 1)² vectors per iteration and term
-        if iterations == 1:  # the budget binds: the next Jacobian (3 vectors) would pass it, and each stage says so
+        budget = iterations * (counted_terms + 1) ** 2  # two terms: up to (2 + 1)² vectors per iteration and term
+        if budget < 27:  # the budget binds: the next Jacobian (3 vectors) would pass it, and each stage says so
             assert budget - 3 < vectors[10] <= budget and budget - 3 < vectors[40] <= budget
             assert caplog.text.count(f"of {budget} coefficient vectors rolled out") >= 2
             assert "windows of 10 samples: gap" in caplog.text and "(its budget spent)" in caplog.text
