@@ -364,6 +364,25 @@ def test_a_study_takes_a_config_dir_and_the_relative_paths_of_the_folder_it_is_r
     assert "--config-dir" in capsys.readouterr().err
 
 
+def test_a_study_adds_the_users_overrides_to_every_training_job_and_to_its_command(capsys):
+    """--set KEY=VALUE (repeatable) comes after the study's own settings, so it wins over them (not over the
+    study's sweep); the summaries' command reruns it; anything but KEY=VALUE is refused by name."""
+    from experiments import studylib as S
+
+    study, _ = S.parse_args("model_size", "", ["--scene", "elastic", "--set", "evaluation.closure_shooting_iterations=0",
+                                               "--set", "trainer.max_epochs=30"])
+    ours = study.method("lnf", ["model.latent_dim=1,2"])
+    assert ours[-3:] == ["evaluation.closure_shooting_iterations=0", "trainer.max_epochs=30", "model.latent_dim=1,2"]
+    assert "trainer.max_epochs=15" in ours  # the reduced settings', overridden by the user's after it
+    assert study.method("pod")[-2:] == ["evaluation.closure_shooting_iterations=0", "trainer.max_epochs=30"]
+    assert study.command() == ("python -m experiments.model_size --set evaluation.closure_shooting_iterations=0 "
+                               "--set trainer.max_epochs=30 --scene elastic")
+    for bad in ("model.w0", "=3"):
+        with pytest.raises(SystemExit):
+            S.parse_args("model_size", "", ["--set", bad])
+        assert f"--set {bad!r}: expected a Hydra override KEY=VALUE" in capsys.readouterr().err
+
+
 def test_pareto_and_scenes_run_the_vibrating_string_from_its_own_folder(tmp_path):
     """Started from a folder that is not the repository, as a user would: the repository root (which holds the
     studies' package) and, relative, the example's module on PYTHONPATH, a relative data dir (LNF_DATA_DIR) and relative output folders, which the studies' jobs (run in the

@@ -56,6 +56,8 @@ class Study:
     #: `python -m <entry>` process each (--fresh-processes)
     one_process: bool = True
     long_check: bool = True  # the training jobs' long-horizon energy check (off where a study reads none of it)
+    #: Hydra overrides of the user's (``--set KEY=VALUE``), after the study's own settings of every training job
+    overrides: tuple[str, ...] = ()
     rows: list[dict[str, Any]] = field(default_factory=list)
     started: float = field(default_factory=time.perf_counter)
     _scene: Any = field(default=None, init=False, repr=False, compare=False)
@@ -93,7 +95,7 @@ class Study:
                 over += ["evaluation.max_reduction_points=64"]
                 if name == "full_order":
                     over += ["model.resolution=12"]
-        return [*over, *extra]
+        return [*over, *self.overrides, *extra]  # the user's last but for the study's own sweep
 
     def unused_experiment_keys(self, node: str, config: str) -> list[str]:
         """Keys of the scene experiment's `node` (e.g. a SIREN width under `model`) that `config` (e.g.
@@ -141,7 +143,7 @@ class Study:
         """The command line that reruns this study (its mode, config dir and scene) from the repository root, as
         summaries and captions print it; with a config dir, the PYTHONPATH that imports the scene's module (less the
         repository root itself, which `python -m` run there puts on the path)."""
-        mode = "" if self.mode == "reduced" else f" --{self.mode}"
+        mode = ("" if self.mode == "reduced" else f" --{self.mode}") + "".join(f" --set {o}" for o in self.overrides)
         if self.config_dir is None:
             scene = "" if self.is_default_scene() else f" --scene {self.scene}"
             return f"python -m experiments.{self.name}{mode}{scene}"
@@ -242,7 +244,7 @@ def _shown(path: Path) -> str:
 def parse_args(name: str, description: str, argv: Optional[Sequence[str]] = None,
                extra: Optional[Callable[[argparse.ArgumentParser], Any]] = None) -> tuple[Study, argparse.Namespace]:
     """The study's command line: ``--config-dir``, ``--scene``, ``--full``/``--smoke``, ``--out``, ``--threads``,
-    ``--fresh`` and the study's own options (`extra` adds them to the parser)."""
+    ``--fresh``, ``--set`` and the study's own options (`extra` adds them to the parser)."""
     p = argparse.ArgumentParser(prog=f"python -m experiments.{name}", description=description,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     default = default_experiment()
@@ -262,9 +264,15 @@ def parse_args(name: str, description: str, argv: Optional[Sequence[str]] = None
     p.add_argument("--fresh-processes", action="store_true",
                    help="run each multirun in a fresh `python -m lnf.train` (or lnf.evaluate) process; default: one "
                         "after another in one worker process, which imports torch and Lightning once")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", dest="overrides",
+                   help="a Hydra override of every training job, after the study's own settings (repeatable), e.g. "
+                        "--set evaluation.closure_shooting_iterations=0; summaries print it in their command")
     if extra is not None:
         extra(p)
     args = p.parse_args(argv)
+    for given in args.overrides:
+        if "=" not in given or given.startswith("="):
+            p.error(f"--set {given!r}: expected a Hydra override KEY=VALUE, e.g. --set trainer.max_epochs=30")
     config_dir = None
     if args.config_dir is not None:
         config_dir = args.config_dir.expanduser().resolve()
@@ -284,7 +292,7 @@ def parse_args(name: str, description: str, argv: Optional[Sequence[str]] = None
     if args.scene != default and args.out is None:
         out = out.with_name(f"{out.name}-{args.scene}")
     study = Study(name=name, scene=args.scene, mode=mode, out=out, threads=args.threads, fresh=args.fresh,
-                  config_dir=config_dir, one_process=not args.fresh_processes)
+                  config_dir=config_dir, one_process=not args.fresh_processes, overrides=tuple(args.overrides))
     try:
         scene = study.scene_object()
     except (ImportError, ValueError) as err:  # a module not on PYTHONPATH, a bad scene parameter
