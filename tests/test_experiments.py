@@ -26,6 +26,12 @@ def test_bench_rollout_step_prints_a_ratio():
     assert len(rows) == 2 and all("×" in r for r in rows)
 
 
+def test_bench_table_prints_both_evaluations_and_their_ratio():
+    out = _run(["-m", "experiments.bench_table", "--dims", "3", "--rows", "4"]).stdout
+    (row,) = [line for line in out.splitlines() if line.startswith("d = 3")]
+    assert "axis by axis" in row and "tensor basis" in row and float(row.split("ratio")[1]) > 0
+
+
 def test_bench_training_measures_this_checkout_and_a_baseline_commit_in_the_same_run(tmp_path):
     """The training benchmark measures HEAD in a temporary git worktree beside this checkout (each in its own
     subprocess, importing its own lnf), counts the jets of a step from the code, and writes its table and raw

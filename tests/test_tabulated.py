@@ -27,6 +27,31 @@ def test_chebyshev_table_reproduces_a_smooth_function_and_its_derivatives():
     torch.testing.assert_close(out[:, 2, 1], torch.ones_like(q1), atol=1e-8, rtol=0)
 
 
+def test_a_table_of_three_or_four_codes_is_evaluated_as_one_product_on_the_tensor_basis(monkeypatch):
+    """From d = 3 the interpolant is one matrix product on the tensor-product basis, in chunks of rows: the same
+    values and derivatives as contracting axis by axis, and exact on a polynomial it can hold."""
+    from lnf import tabulated
+
+    for d in (3, 4):
+        low, high = [-1.0, 0.0, 0.5, -2.0][:d], [1.0, 2.0, 1.5, 0.0][:d]
+        n = 6
+        axes = [lo + (hi - lo) * (np.polynomial.chebyshev.chebpts1(n) + 1) / 2 for lo, hi in zip(low, high)]
+        grid = np.meshgrid(*axes, indexing="ij")
+        f = np.stack([grid[0] ** 2 * grid[1] + grid[-1] ** 3, np.prod(grid, 0)], -1)  # degrees < n per axis
+        table = ChebyshevTable(f, low, high)
+        q = torch.tensor(np.random.default_rng(d).uniform(low, high, (7, d)))
+        monkeypatch.setattr(tabulated, "TENSOR_BASIS_ELEMENTS", 2 * n ** d)  # chunks of 2 rows
+        out = table(q)
+        monkeypatch.setattr(tabulated, "TENSOR_BASIS_FROM_DIM", 99)  # axis by axis
+        torch.testing.assert_close(out, table(q), atol=1e-12, rtol=0)
+        monkeypatch.undo()
+        v = q.numpy()
+        torch.testing.assert_close(out[:, 0, 0], torch.tensor(v[:, 0] ** 2 * v[:, 1] + v[:, -1] ** 3), atol=1e-10,
+                                   rtol=0)
+        torch.testing.assert_close(out[:, 1 + d - 1, 0], torch.tensor(3 * v[:, -1] ** 2), atol=1e-8, rtol=0)
+        torch.testing.assert_close(out[:, 2, 1], torch.tensor(np.prod(np.delete(v, 1, 1), 1)), atol=1e-8, rtol=0)
+
+
 def test_chebyshev_table_rejects_a_bad_box():
     with pytest.raises(ValueError, match="high > low"):
         ChebyshevTable(np.zeros((4, 1)), [1.0], [1.0])
