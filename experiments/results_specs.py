@@ -181,6 +181,9 @@ SPECS: dict[str, Spec] = {
     "soft_body_d2_default": Spec("metrics", "python -m lnf.train +experiment=soft_body model.latent_dim=2",
                                  metrics=SCENE_METRICS),
     "elastic_default": Spec("metrics", "python -m lnf.train +experiment=elastic", metrics=SCENE_METRICS),
+    # the two cantilevers' defaults at d = 2, as soft_body_d2_default
+    **{f"{scene}_d2_default": Spec("metrics", f"python -m lnf.train +experiment={scene} model.latent_dim=2",
+                                   metrics=SCENE_METRICS) for scene in ("elastic", "elastic_actuated")},
     # the cantilever's default at another SIREN frequency, quoted beside elastic_default (docs/choices.md)
     "elastic-w0-3": Spec("metrics", "python -m lnf.train +experiment=elastic model.w0=3", metrics=SCENE_METRICS),
     "elastic-w0": Spec("cells", "python -m experiments.results_tables"),
