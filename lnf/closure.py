@@ -96,8 +96,9 @@ class PotentialClosure(nn.Module):
         x, inside = self._scaled(q)
         coef = self._coefficients(x, coef)
         value = self._combine(self._derivatives(inside, (0,) * x.shape[1]), coef)
-        for i in (i for i, out in enumerate((x != inside).any(0).tolist()) if out):  # the continuation beyond the box
-            value = value + self._combine(self._derivatives(inside, self._unit(i)), coef) * (x[:, i] - inside[:, i])
+        gap = x - inside
+        for i in (i for i, out in enumerate(gap.ne(0).any(0).tolist()) if out):  # the continuation beyond the box
+            value = value + self._combine(self._derivatives(inside, self._unit(i)), coef) * gap[:, i]
         return value
 
     def basis_gradients(self, q: Tensor) -> Tensor:
