@@ -20,18 +20,19 @@ import logging
 import platform
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Optional
 
 import torch
 
 from experiments.scenes import snapshot_data_of
-from lnf.closure import PotentialClosure
+from lnf.closure import CLOSURE_MAX_TERMS, PotentialClosure
 from lnf.evaluation_pipeline import EvaluationData, EvaluationSpec, evaluate_model
 from lnf.model import load
 from lnf.tempfiles import write_json_atomic, write_text_atomic
 from lnf.closure_choice import fit_closure
 
 ROOT = Path(__file__).resolve().parents[1]
+MAX_TERMS = CLOSURE_MAX_TERMS  # as model.closure_max_terms by default
 KEYS = [("field_rel_l2/in_horizon/median", "in horizon"), ("field_rel_l2/extrapolation/median", "after horizon"),
         ("projection_rel_l2/all/median", "floor"), ("energy_drift/max", "energy drift, max"),
         ("energy_rel_err/max", "FEM energy error, max"), ("diverged_count", "diverged")]
@@ -47,10 +48,11 @@ def run_integrator(ckpt: Path) -> Any:
     return "implicit_midpoint"
 
 
-def ablate(ckpt: Path, degree: int, shooting_iterations: int = EvaluationSpec.closure_shooting_iterations
-           ) -> dict[str, Any]:
-    """Test metrics of `ckpt` without and with a closure of `degree` (fitted here, its shooting search bounded by
-    `shooting_iterations` Levenberg–Marquardt iterations per term in each stage), and the fit's record."""
+def ablate(ckpt: Path, degree: int, shooting_iterations: int = EvaluationSpec.closure_shooting_iterations,
+           max_terms: Optional[int] = MAX_TERMS) -> dict[str, Any]:
+    """Test metrics of `ckpt` without and with a closure of `degree` (lowered to at most `max_terms` terms; fitted
+    here, its shooting search bounded by `shooting_iterations` Levenberg–Marquardt iterations per term in each
+    stage), and the fit's record."""
     model = load(ckpt)
     if getattr(model, "latent_dynamics", None) is not None or model.state_is_field:
         raise SystemExit(f"--ckpt {ckpt}: {type(model).__name__} has no reduced pulled-back dynamics to close")
@@ -62,13 +64,13 @@ def ablate(ckpt: Path, degree: int, shooting_iterations: int = EvaluationSpec.cl
     model.closure = None
     with torch.no_grad():
         plain = evaluate_model(model, test, spec).metrics
-    model.closure = PotentialClosure(model.latent_dim, degree)
+    model.closure = PotentialClosure(model.latent_dim, degree, max_terms)
     start = time.perf_counter()
     fit = fit_closure(model, dm, spec)
     fit_seconds = time.perf_counter() - start
     with torch.no_grad():
         closed = evaluate_model(model, test, spec).metrics if model.closure.active else plain
-    return {"checkpoint": str(ckpt), "latent_dim": int(model.latent_dim), "degree": degree,
+    return {"checkpoint": str(ckpt), "latent_dim": int(model.latent_dim), "degree": model.closure.degree,
             "plain": {k: float(plain[k]) for k, _ in KEYS if k in plain},
             "closed": {k: float(closed[k]) for k, _ in KEYS if k in closed}, "fit": fit, "fit_seconds": fit_seconds}
 
@@ -94,6 +96,9 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--ckpt", type=Path, nargs="+", required=True, help="lnf checkpoints (last.ckpt)")
     parser.add_argument("--degree", type=int, default=4, help="the closure's polynomial degree p ≥ 2 (default 4)")
+    parser.add_argument("--max-terms", type=int, default=MAX_TERMS,
+                        help="the closure's degree is lowered (not below 2) until it has at most this many terms "
+                             "(default %(default)s, as model.closure_max_terms); 0: no cap")
     parser.add_argument("--out", type=Path, default=ROOT / "outputs" / "studies" / "closure_ablation")
     parser.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
     parser.add_argument("--shooting-iterations", type=int, default=EvaluationSpec.closure_shooting_iterations,
@@ -104,6 +109,8 @@ def main(argv: list[str] | None = None) -> None:
     logging.basicConfig(level=logging.INFO, format="[%(name)s] %(message)s")  # the fit's candidates and choice
     if args.degree < 2:
         raise SystemExit(f"--degree must be ≥ 2, got {args.degree}")
+    if args.max_terms < 0:
+        raise SystemExit(f"--max-terms must be ≥ 0 (0: no cap), got {args.max_terms}")
     if args.shooting_iterations < 0:
         raise SystemExit(f"--shooting-iterations must be ≥ 0, got {args.shooting_iterations}")
     missing = [str(c) for c in args.ckpt if not c.is_file()]
@@ -113,13 +120,14 @@ def main(argv: list[str] | None = None) -> None:
         torch.set_num_threads(args.threads)
     command = "python -m experiments.closure_ablation " + " ".join(
         ["--ckpt", *map(str, args.ckpt), "--degree", str(args.degree)]
+        + ([] if args.max_terms == MAX_TERMS else ["--max-terms", str(args.max_terms)])
         + ([] if args.shooting_iterations == EvaluationSpec.closure_shooting_iterations
            else ["--shooting-iterations", str(args.shooting_iterations)]))
     rows = []
     args.out.mkdir(parents=True, exist_ok=True)
     for ckpt in args.ckpt:
         print(f"[closure_ablation] {ckpt}", flush=True)
-        rows.append(ablate(ckpt, args.degree, args.shooting_iterations))
+        rows.append(ablate(ckpt, args.degree, args.shooting_iterations, args.max_terms or None))
         p, c = rows[-1]["plain"], rows[-1]["closed"]
         print(f"[closure_ablation]   after horizon {p['field_rel_l2/extrapolation/median']:.4g} → "
               f"{c['field_rel_l2/extrapolation/median']:.4g}", flush=True)

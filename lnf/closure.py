@@ -15,6 +15,7 @@ Inference, on top of the physics. Off by default (``model.closure_degree: 0``); 
 from __future__ import annotations
 
 import itertools
+import math
 from typing import Any, Optional
 
 import torch
@@ -32,6 +33,26 @@ def monomial_exponents(latent_dim: int, degree: int) -> Tensor:
     return torch.tensor(rows, dtype=torch.long)
 
 
+#: the most terms of a closure by default (``model.closure_max_terms``, ``closure_max_terms`` of lnf.evaluate): d = 2 at
+#: degree 4
+CLOSURE_MAX_TERMS = 14
+
+
+def closure_terms(latent_dim: int, degree: int) -> int:
+    """The number of monomials of total degree 1 … `degree` in `latent_dim` variables: C(d + p, p) − 1."""
+    return math.comb(int(latent_dim) + int(degree), int(degree)) - 1
+
+
+def capped_degree(latent_dim: int, degree: int, max_terms: Optional[int]) -> int:
+    """The largest degree p in [2, `degree`] whose closure has at most `max_terms` terms (2 where none has; `degree`
+    itself for `max_terms` None): at degree 4, d = 1, 2 keep 4 (4 and 14 terms), d = 3, 4 get 2 (9 and 14 terms,
+    where degree 4 has 34 and 69)."""
+    p = int(degree)
+    while max_terms is not None and p > 2 and closure_terms(latent_dim, p) > int(max_terms):
+        p -= 1
+    return p
+
+
 class PotentialClosure(nn.Module):
     """ΔṼ(q̃) = Σ_p θ_p Π_i x_i^{E_pi}, x = (q̃ − center)/scale, for a d-dimensional code; all zeros until fitted.
 
@@ -43,13 +64,19 @@ class PotentialClosure(nn.Module):
     Args:
         latent_dim: d.
         degree: the largest total degree p ≥ 2 (2: a constant force and a linear stiffness correction).
+        max_terms: None, or the most terms: the degree is lowered (not below 2) until the closure has at most this
+            many (:func:`capped_degree`; ``model.closure_max_terms``: :data:`CLOSURE_MAX_TERMS` in conf/model/lnf.yaml).
     """
 
-    def __init__(self, latent_dim: int, degree: int) -> None:
+    def __init__(self, latent_dim: int, degree: int, max_terms: Optional[int] = None) -> None:
         super().__init__()
         if int(degree) < 2:
             raise ValueError(f"model.closure_degree must be 0 (no closure) or ≥ 2, got {degree!r}")
-        self.register_buffer("exponents", monomial_exponents(int(latent_dim), int(degree)))
+        if max_terms is not None and int(max_terms) < 1:
+            raise ValueError(f"model.closure_max_terms must be null (no cap) or ≥ 1, got {max_terms!r}")
+        #: the degree in use: `degree`, lowered to :func:`capped_degree` under `max_terms`
+        self.degree = capped_degree(int(latent_dim), int(degree), max_terms)
+        self.register_buffer("exponents", monomial_exponents(int(latent_dim), self.degree))
         self.register_buffer("center", torch.zeros(int(latent_dim)))
         self.register_buffer("scale", torch.ones(int(latent_dim)))
         self.register_buffer("coef", torch.zeros(len(self.exponents)))

@@ -17,7 +17,7 @@ import torch
 from scipy.optimize import least_squares
 
 from lnf.baselines.latent_mlp import latent_trajectories
-from lnf.closure import ClosedDynamics, equation_residual
+from lnf.closure import CLOSURE_MAX_TERMS, ClosedDynamics, equation_residual
 from lnf.evaluation_pipeline import EvaluationData, EvaluationSpec, evaluate_model
 
 log = logging.getLogger("lnf.closure")
@@ -26,15 +26,18 @@ log = logging.getLogger("lnf.closure")
 #: the closure's candidate regularizers (ridge λ, relative to the normal matrix's mean diagonal)
 CLOSURE_REGULARIZERS = (1e-8, 1e-5, 1e-2)
 CLOSURE_VAL_TRAJECTORIES = 8
-#: the training trajectories (evenly spaced) whose rollouts the shooting refinement fits (a table's rollouts cost
-#: milliseconds; the exact pullback's, a jet per step: fewer), and its Levenberg–Marquardt iterations per term in
-#: each stage by default (``evaluation.closure_shooting_iterations``)
-SHOOTING_TRAJECTORIES, SHOOTING_TRAJECTORIES_EXACT = 16, 4
+#: the training trajectories (evenly spaced) whose rollouts the shooting refinement fits: 16 on a table of at most
+#: SHOOTING_TABLE_NODES nodes (the soft body's d = 2 table has 128², the cantilevers' 64²), 4 where a row costs more:
+#: the exact pullback (a jet per step) or a larger table (32³ or 16⁴ nodes at d = 3, 4: an evaluation is a product
+#: with all of them, tens of milliseconds a row and step); and its Levenberg–Marquardt iterations per term in each
+#: stage by default (``evaluation.closure_shooting_iterations``)
+SHOOTING_TRAJECTORIES, SHOOTING_TRAJECTORIES_EXACT, SHOOTING_TABLE_NODES = 16, 4, 128 ** 2
 SHOOTING_ITERATIONS_PER_TERM = EvaluationSpec.closure_shooting_iterations
-#: a stage's budget counts at most this many terms (d = 2 at degree 4): with more (34 at d = 3, 69 at d = 4) it stays
+#: a stage's budget counts at most this many terms (d = 2 at degree 4): with more (34 at d = 3, 69 at d = 4, where
+#: model.closure_max_terms is lifted) it stays
 #: at iterations × 15² coefficient vectors, so fewer Levenberg–Marquardt iterations, each a rollout of terms + 1
 #: vectors (20 · 35² = 24 500 at d = 3 before: the actuated cantilever's d = 3 shooting ran past 47 min unfinished)
-SHOOTING_BUDGET_TERMS = 14
+SHOOTING_BUDGET_TERMS = CLOSURE_MAX_TERMS
 #: a shooting trial whose rollout leaves the training codes by more than this fraction of their span ends there
 SHOOTING_GUARD_MARGIN = 1.0
 #: the shooting first fits windows of this many samples (multiple shooting: each window starts from the encoded
@@ -132,7 +135,8 @@ def shoot_closure(model: Any, codes: torch.Tensor, velocities: torch.Tensor, dt:
     """Refine the model's closure coefficients in place by shooting: Levenberg–Marquardt (scipy) on the gap between
     the closed dynamics' rollouts from encoded training states (q̃, q̃̇) and the encoded codes `codes` (n, T, d, every
     `dt` [s] from `t0`), in units of the codes' spread, on :data:`SHOOTING_TRAJECTORIES` evenly spaced trajectories
-    (:data:`SHOOTING_TRAJECTORIES_EXACT` where the dynamics are not a table), under the evaluation's `integrator`,
+    (:data:`SHOOTING_TRAJECTORIES_EXACT` where the dynamics are not a table or a table of more than
+    :data:`SHOOTING_TABLE_NODES` nodes), under the evaluation's `integrator`,
     with a budget of `iterations_per_term` × (m + 1)² coefficient vectors rolled out in each stage, m = min(terms,
     :data:`SHOOTING_BUDGET_TERMS`): an iteration of Levenberg–Marquardt rolls out terms + 1 vectors for its
     finite-difference Jacobian (one batched rollout: each block of rows its own coefficients) and one for its trial,
@@ -155,7 +159,9 @@ def shoot_closure(model: Any, codes: torch.Tensor, velocities: torch.Tensor, dt:
     # model.dynamics() leaves a zero closure out
     base = model.dynamics()
     dynamics = ClosedDynamics(base.base if isinstance(base, ClosedDynamics) else base, closure)
-    count = SHOOTING_TRAJECTORIES if getattr(dynamics, "small_tensors", False) else SHOOTING_TRAJECTORIES_EXACT
+    table = getattr(dynamics.base, "table", None)  # TabulatedDynamics: its Chebyshev table
+    cheap = getattr(dynamics, "small_tensors", False) and (table is None or table.n ** table.d <= SHOOTING_TABLE_NODES)
+    count = SHOOTING_TRAJECTORIES if cheap else SHOOTING_TRAJECTORIES_EXACT
     rows = np.unique(np.linspace(0, codes.shape[0] - 1, min(count, codes.shape[0])).round().astype(int))
     q, v = model.as_model(codes[rows]), model.as_model(velocities[rows])
     forces = None if controls is None else controls[rows]

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
-from typing import Any
+from typing import Any, Optional
 
 import hydra
 import torch
@@ -67,20 +67,23 @@ def _evaluate(cfg: DictConfig) -> dict[str, float]:
         write_json_atomic(output_dir / "run.json", run_metadata(cfg))
 
     data, spec = rollout_request(cfg, model, split, path, provenance)
-    closure = {} if cfg.get("closure_degree") is None else fit_closure_first(model, int(cfg.closure_degree), path, spec)
+    closure = {} if cfg.get("closure_degree") is None else fit_closure_first(model, int(cfg.closure_degree), path, spec,
+                                                                                 cfg.get("closure_max_terms"))
     report = evaluate_model(model, data, spec)
     write_report(report, output_dir, extra=closure, logger=log)
     print_summary(report.metrics, title=f"{cfg.split} metrics of {cfg.ckpt_path}")
     return report.metrics
 
 
-def fit_closure_first(model: Any, degree: int, path: Path, spec: Any) -> dict[str, float]:
-    """``closure_degree=p``: fit a potential closure of degree p (lnf/closure.py) on the checkpoint's own training
-    trajectories, exactly as ``lnf.train ... model.closure_degree=p`` does after training; returns its record."""
+def fit_closure_first(model: Any, degree: int, path: Path, spec: Any,
+                      max_terms: Optional[int] = None) -> dict[str, float]:
+    """``closure_degree=p``: fit a potential closure of degree p (lowered to at most `max_terms` terms, lnf/closure.py)
+    on the checkpoint's own training trajectories, exactly as ``lnf.train ... model.closure_degree=p`` does after
+    training; returns its record."""
     if model.state_is_field or getattr(model, "latent_dynamics", None) is not None:
         raise ValueError(f"closure_degree={degree}: a closure corrects reduced pulled-back dynamics; the checkpoint "
                          f"holds a {type(model).__name__} without them")
-    model.closure = PotentialClosure(model.latent_dim, degree)
+    model.closure = PotentialClosure(model.latent_dim, degree, None if max_terms is None else int(max_terms))
     return fit_closure(model, checkpoint_snapshot_data(model, path), spec)
 
 

@@ -38,6 +38,8 @@ EVALUATE_RULES: dict[str, tuple] = {
     **EVALUATION_RULES,
     "closure_degree": ("int", 2, 6, "the degree of a potential closure fitted on the training trajectories first", "",
                        "the checkpoint's own dynamics"),
+    "closure_max_terms": ("int", 1, None, "the most terms of a closure fitted first (its degree is lowered to fit)", "",
+                          "no cap"),
     "threads": ("int", 1, None, "torch CPU threads", "", "torch's default"),
     "grid.resolution": ("int", 1, None, "points per axis of grid.kind=uniform; below 1 the grid has no points"),
     "grid.n_points": ("int", 1, None, "points of grid.kind=random; below 1 the grid has no points"),

@@ -228,6 +228,7 @@ class LagrangianNeuralField(ReducedModel):
         energy_weight: float = 0.0,
         dynamics_weight: float = 0.0,
         closure_degree: int = 0,
+        closure_max_terms: Optional[int] = None,
         gradient_weight: float = 0.0,
         mass_condition_weight: float = 1.0,
         mass_condition_max: float = 100.0,
@@ -262,8 +263,10 @@ class LagrangianNeuralField(ReducedModel):
             linear = LinearEmbedding(scene.bounds, int(latent_dim), scene.field_dim, pod_degree)
             self.field = SubspacePlusField(linear, self.field, require("model.pod_residual_scale", pod_residual_scale))
         require("model.closure_degree", closure_degree)
-        # a potential closure ΔṼ fitted after training (lnf/closure.py); its buffers travel in the checkpoint
-        self.closure = PotentialClosure(latent_dim, closure_degree) if int(closure_degree) else None
+        # a potential closure ΔṼ fitted after training (lnf/closure.py); its buffers travel in the checkpoint. No cap
+        # by default here: a checkpoint written before model.closure_max_terms rebuilds its closure's shapes as they were
+        self.closure = (PotentialClosure(latent_dim, closure_degree, closure_max_terms) if int(closure_degree)
+                        else None)
         self.reduction_steps = int(reduction_steps)
         require("model.reduction_starts", reduction_starts)
         require("model.start_radius", start_radius)

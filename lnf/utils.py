@@ -43,6 +43,7 @@ NUMBER_RULES: dict[str, tuple[str, float, Optional[float], str]] = {
     "model.gradient_weight": ("≥", 0, None, "λ_G of the gradient loss"),
     "model.dynamics_weight": ("≥", 0, None, "λ_D of the dynamics-residual loss"),
     "model.closure_degree": ("int", 0, 6, "the degree of the fitted potential closure (0: none)"),
+    "model.closure_max_terms": ("int", 1, None, "the most terms of the fitted potential closure"),
     "model.mass_condition_weight": ("≥", 0, None, "λ_M of the mass-conditioning loss"),
     "model.mass_condition_max": ("≥", 1, None, "κ, the largest condition number of M̃ the mass-conditioning loss allows"),
     "model.resolution": ("int", 1, None, "grid points per axis of the full-order model"),

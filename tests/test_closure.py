@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from helpers import METRICS_ONLY, ROOT, TINY, compose_config, run_cli
-from lnf.closure import ClosedDynamics, PotentialClosure, equation_residual, monomial_exponents
+from lnf.closure import CLOSURE_MAX_TERMS, ClosedDynamics, PotentialClosure, equation_residual, monomial_exponents
 from lnf.integrators import get_integrator
 from test_dynamics import _nonlinear_setup, _pendulum_dynamics
 
@@ -19,6 +19,23 @@ def test_the_monomials_are_every_total_degree_from_two_up():
     assert len(monomial_exponents(4, 4)) == 4 + 10 + 20 + 35
     with pytest.raises(ValueError, match=r"closure_degree must be 0 \(no closure\) or ≥ 2, got 1"):
         PotentialClosure(2, 1)
+
+
+def test_the_closures_degree_is_lowered_until_it_has_at_most_its_most_terms():
+    """Degree 4 keeps 4 at d = 1, 2 (4 and 14 terms) and becomes 2 at d = 3, 4 (9 and 14 terms, not 34 and 69);
+    never below 2; no cap where none is given (a checkpoint written before the cap rebuilds its shapes)."""
+    import yaml
+
+    kept = {d: PotentialClosure(d, 4, 14) for d in (1, 2, 3, 4, 5)}
+    assert {d: (c.degree, len(c.coef)) for d, c in kept.items()} == {1: (4, 4), 2: (4, 14), 3: (2, 9), 4: (2, 14),
+                                                                    5: (2, 20)}
+    assert PotentialClosure(3, 4).degree == 4 and len(PotentialClosure(3, 4).coef) == 34
+    assert len(PotentialClosure(3, 4, 19).coef) == 19  # degree 3 fits 19 terms exactly
+    with pytest.raises(ValueError, match=r"model.closure_max_terms must be null \(no cap\) or ≥ 1, got 0"):
+        PotentialClosure(3, 4, 0)
+    # the training's and lnf.evaluate's defaults are the library's
+    for name, key in (("model/lnf.yaml", "closure_max_terms"), ("evaluate.yaml", "closure_max_terms")):
+        assert yaml.safe_load((ROOT / "conf" / name).read_text())[key] == CLOSURE_MAX_TERMS, name
 
 
 def test_the_gradient_is_the_potentials_and_a_polynomial_residual_is_fitted_exactly():
@@ -329,6 +346,37 @@ def test_per_row_closure_coefficients_roll_out_as_separate_closures_through_newt
         torch.testing.assert_close(together.q[2 * k:2 * k + 2], alone.q, rtol=1e-9, atol=1e-12)
     with pytest.raises(ValueError, match=r"shape \(6, 2\)"):
         closure(thetas[0]).gradient(q0.repeat(3, 1), thetas)
+
+
+class _Table(_UnitSpring):
+    """A base dynamics that says it is a table of `n`^`d` nodes (TabulatedDynamics' `small_tensors` and `table`)."""
+    small_tensors = True
+
+    def __init__(self, n, d):
+        self.table = SimpleNamespace(n=n, d=d)
+
+
+@pytest.mark.parametrize("n, d, expected", [(128, 2, 16), (32, 3, 4), (16, 4, 4)])
+def test_shooting_fits_fewer_trajectories_on_a_table_of_many_nodes(monkeypatch, n, d, expected):
+    """16 training trajectories on a table of at most 128² nodes (d ≤ 2), 4 on the 32³ and 16⁴ tables of d = 3, 4,
+    whose every evaluation is a product with all of their nodes."""
+    from lnf import closure_choice
+
+    fitted = PotentialClosure(1, 2).double()
+    fitted.scale.fill_(2.0)
+    model = _ClosedModel(_Table(n, d), fitted)
+    q0 = torch.linspace(-0.8, 0.8, 20, dtype=torch.float64)[:, None]
+    motion = get_integrator("rk4").integrate(_UnitSpring(), q0, torch.zeros_like(q0), 0.1, 10)
+    rows, rollout = set(), model.rollout
+
+    def counted(q0, *a, **k):  # the whole window (one window): trajectories × coefficient vectors rows
+        rows.add(len(q0))
+        return rollout(q0, *a, **k)
+
+    model.rollout = counted
+    monkeypatch.setattr(closure_choice, "SHOOTING_WINDOW", 10)
+    closure_choice.shoot_closure(model, motion.q, motion.v, 0.1, None, "rk4", iterations_per_term=1)
+    assert min(rows) == expected and all(r % expected == 0 for r in rows)
 
 
 def test_a_shooting_stage_stops_after_its_budget_of_rollouts_and_keeps_its_best(monkeypatch, caplog):
