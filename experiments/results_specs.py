@@ -152,6 +152,12 @@ SPECS: dict[str, Spec] = {
         + f"--out outputs/studies/model_size-{s}-d34", raw=f"outputs/studies/model_size-{s}-d34",
         table=table, csv="model_size.csv") for s in ("elastic", "elastic_actuated", "soft_body")
         for tail, table in (("", 0), ("-baselines", 1))},
+    # the closure's shooting at d = 3 (degree lowered to 2 by model.closure_max_terms, 4 trajectories on the 32³
+    # table) on the d = 3 checkpoints of the searches above: without and with the closure
+    "closure_ablation-d3": Spec(
+        "study", "python -m experiments.closure_ablation --ckpt <the d = 3 checkpoints of model_size-{elastic,"
+        "elastic_actuated}-d34> --degree 4 --threads 1 --out outputs/studies/closure_ablation-d3",
+        raw="outputs/studies/closure_ablation-d3", table=0, csv="closure.json"),
     **{f"seeds-{s}": _study("seeds", s) for s in SCENES},
     "cost_scaling-pendulum": _study("cost_scaling", "pendulum"),
     **{f"roofline-{s}": _study("roofline", s) for s in SCENES},

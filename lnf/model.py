@@ -348,7 +348,7 @@ class LagrangianNeuralField(ReducedModel):
         return self._table_cache[1]
 
     def _build_table(self, quadrature: "Quadrature | QuadratureRule | None") -> Any:
-        from lnf.tabulated import TABLE_MARGIN, TabulatedDynamics
+        from lnf.tabulated import TABLE_MARGIN, TABLE_MAX_ERROR, TabulatedDynamics
 
         opts = dict(self.tabulation or {})
         margin = float(opts.pop("margin", TABLE_MARGIN))
@@ -359,9 +359,17 @@ class LagrangianNeuralField(ReducedModel):
                              "or call model.track_code_range(codes) with representative codes first")
         span = (high - low).clamp_min(1e-3)
         # built from a float64 copy of φ: the table's derivatives would amplify float32 rounding by nodes²
-        return TabulatedDynamics(self.lagrangian_dynamics(quadrature), (low - margin * span).tolist(),
-                                 (high + margin * span).tolist(),
-                                 builder=self.lagrangian_dynamics(quadrature, dtype=torch.float64), **opts)
+        exact = self.lagrangian_dynamics(quadrature)
+        table = TabulatedDynamics(exact, (low - margin * span).tolist(), (high + margin * span).tolist(),
+                                  builder=self.lagrangian_dynamics(quadrature, dtype=torch.float64), **opts)
+        if table.info["table_error"] > TABLE_MAX_ERROR:
+            log.warning("dynamics=tabulated: the table of %d nodes per axis (%d points, dynamics.max_nodes and "
+                        "dynamics.max_table_points allow no more) is %.1e off the exact pullback, over the %.0e a "
+                        "rollout can trust (lnf.tabulated.TABLE_MAX_ERROR): rolling out on the exact pullback "
+                        "instead, slower", table.info["table_nodes"], table.info["table_points"],
+                        table.info["table_error"], TABLE_MAX_ERROR)
+            return exact
+        return table
 
     def set_tabulation(self, spec: Optional[dict[str, Any]]) -> None:
         """Roll out with a Chebyshev table of M̃, Ṽ (`spec`: options of :class:`lnf.tabulated.TabulatedDynamics`

@@ -208,6 +208,25 @@ def test_model_tracks_training_codes_and_tabulates_on_their_range(pendulum, tmp_
     assert torch.isnan(fresh.code_low).all()
 
 
+def test_a_table_too_coarse_to_trust_leaves_the_model_on_the_exact_pullback(pendulum, caplog, monkeypatch):
+    """A table whose error stays above TABLE_MAX_ERROR (its nodes capped) is not used: the model rolls out on the
+    exact pullback and says why, naming the error; one within it is used as before."""
+    from lnf import tabulated
+    from lnf.model import LagrangianNeuralField
+    from lnf.dynamics import ReducedDynamics
+
+    model = LagrangianNeuralField(pendulum, width=16, hyper_width=8)
+    model.track_code_range(torch.tensor([[-2.0], [2.0]]), reset=True)
+    model.set_tabulation({"min_nodes": 2, "max_nodes": 2, "margin": 0.0})  # 2 nodes cannot hold sin over ±2 rad
+    with caplog.at_level("WARNING", logger="lnf.model"):
+        dyn = model.dynamics()
+    assert isinstance(dyn, ReducedDynamics) and not isinstance(dyn, TabulatedDynamics)
+    assert "off the exact pullback" in caplog.text and "TABLE_MAX_ERROR" in caplog.text
+    monkeypatch.setattr(tabulated, "TABLE_MAX_ERROR", float("inf"))  # the same table, trusted: used
+    model.set_tabulation({"min_nodes": 2, "max_nodes": 2, "margin": 0.01})
+    assert isinstance(model.dynamics(), TabulatedDynamics)
+
+
 def test_a_tabulated_rollout_runs_on_one_torch_thread_and_restores_the_callers_count(pendulum):
     from lnf.integrators.rk4 import RK4
     from lnf.model import LagrangianNeuralField
