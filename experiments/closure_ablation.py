@@ -32,7 +32,6 @@ from lnf.tempfiles import write_json_atomic, write_text_atomic
 from lnf.closure_choice import fit_closure
 
 ROOT = Path(__file__).resolve().parents[1]
-MAX_TERMS = CLOSURE_MAX_TERMS  # as model.closure_max_terms by default
 KEYS = [("field_rel_l2/in_horizon/median", "in horizon"), ("field_rel_l2/extrapolation/median", "after horizon"),
         ("projection_rel_l2/all/median", "floor"), ("energy_drift/max", "energy drift, max"),
         ("energy_rel_err/max", "FEM energy error, max"), ("diverged_count", "diverged")]
@@ -49,7 +48,7 @@ def run_integrator(ckpt: Path) -> Any:
 
 
 def ablate(ckpt: Path, degree: int, shooting_iterations: int = EvaluationSpec.closure_shooting_iterations,
-           max_terms: Optional[int] = MAX_TERMS) -> dict[str, Any]:
+           max_terms: Optional[int] = CLOSURE_MAX_TERMS) -> dict[str, Any]:
     """Test metrics of `ckpt` without and with a closure of `degree` (lowered to at most `max_terms` terms; fitted
     here, its shooting search bounded by `shooting_iterations` Levenberg–Marquardt iterations per term in each
     stage), and the fit's record."""
@@ -96,7 +95,7 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--ckpt", type=Path, nargs="+", required=True, help="lnf checkpoints (last.ckpt)")
     parser.add_argument("--degree", type=int, default=4, help="the closure's polynomial degree p ≥ 2 (default 4)")
-    parser.add_argument("--max-terms", type=int, default=MAX_TERMS,
+    parser.add_argument("--max-terms", type=int, default=CLOSURE_MAX_TERMS,
                         help="the closure's degree is lowered (not below 2) until it has at most this many terms "
                              "(default %(default)s, as model.closure_max_terms); 0: no cap")
     parser.add_argument("--out", type=Path, default=ROOT / "outputs" / "studies" / "closure_ablation")
@@ -120,7 +119,7 @@ def main(argv: list[str] | None = None) -> None:
         torch.set_num_threads(args.threads)
     command = "python -m experiments.closure_ablation " + " ".join(
         ["--ckpt", *map(str, args.ckpt), "--degree", str(args.degree)]
-        + ([] if args.max_terms == MAX_TERMS else ["--max-terms", str(args.max_terms)])
+        + ([] if args.max_terms == CLOSURE_MAX_TERMS else ["--max-terms", str(args.max_terms)])
         + ([] if args.shooting_iterations == EvaluationSpec.closure_shooting_iterations
            else ["--shooting-iterations", str(args.shooting_iterations)]))
     rows = []
