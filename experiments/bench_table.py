@@ -8,23 +8,15 @@ from __future__ import annotations
 
 import argparse
 import platform
-import time
 
 import numpy as np
 import torch
 
+from experiments.bench_rollout_step import timeit
 from lnf import tabulated
 
 #: nodes per axis and channels (M̃, Ṽ, a damping and a load's work) of the tables measured, by d
 SHAPES = {2: (32, 12), 3: (32, 15), 4: (16, 20)}
-
-
-def seconds(fn, repeats: int = 5) -> float:
-    fn()
-    start = time.perf_counter()
-    for _ in range(repeats):
-        fn()
-    return (time.perf_counter() - start) / repeats
 
 
 def main() -> None:
@@ -45,7 +37,7 @@ def main() -> None:
             cost = {}
             for name, start in (("axis by axis", 99), ("tensor basis", 3)):
                 tabulated.TENSOR_BASIS_FROM_DIM = start
-                cost[name] = seconds(lambda: table.evaluate_scaled(x, table.coef))
+                cost[name] = timeit(lambda: table.evaluate_scaled(x, table.coef), repeats=5, warmup=1)
             a, b = cost["axis by axis"], cost["tensor basis"]
             print(f"d = {d} ({n} nodes per axis), {rows:5d} rows: axis by axis {a * 1e3:8.2f} ms, tensor basis "
                   f"{b * 1e3:8.2f} ms, ratio {a / b:.2f}", flush=True)

@@ -144,8 +144,8 @@ SPECS: dict[str, Spec] = {
     # the same studies' second table: the baselines (POD-Galerkin, Operator Inference, the black box) at the question
     **{f"model_size-{s}-baselines": _study("model_size", s, table=1) for s in ("elastic", "elastic_actuated",
                                                                                "soft_body")},
-    # issue 44 item 2: d = 3, 4 (the first table: lnf; the second: POD-Galerkin k = 3, 4 and OpInf); the two
-    # three elastic scenes' at the defaults of 2026-12-07 but the closure's shooting (then beyond a 2-core machine)
+    # issue 44 item 2: d = 3, 4 (the first table: lnf; the second: POD-Galerkin k = 3, 4 and OpInf), the three
+    # elastic scenes' at the defaults of 2026-12-07 but the closure's shooting (then beyond a 2-core machine)
     **{f"model_size-{s}-d34{tail}": Spec(
         "study", f"python -m experiments.model_size --scene {s} --dims 3,4 --widths 64 --modes 3,4 "
         + "--set evaluation.closure_shooting_iterations=0 "

@@ -83,7 +83,7 @@ def fit_closure_first(model: Any, degree: int, path: Path, spec: Any,
     if model.state_is_field or getattr(model, "latent_dynamics", None) is not None:
         raise ValueError(f"closure_degree={degree}: a closure corrects reduced pulled-back dynamics; the checkpoint "
                          f"holds a {type(model).__name__} without them")
-    model.closure = PotentialClosure(model.latent_dim, degree, None if max_terms is None else int(max_terms))
+    model.closure = PotentialClosure(model.latent_dim, degree, max_terms)
     return fit_closure(model, checkpoint_snapshot_data(model, path), spec)
 
 
