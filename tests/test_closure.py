@@ -418,6 +418,47 @@ def test_a_shooting_stage_stops_after_its_budget_of_rollouts_and_keeps_its_best(
         assert end < start
 
 
+def test_a_shooting_stage_stops_when_its_gap_stalls(monkeypatch, caplog):
+    """A stage whose best gap shrank by less than SHOOTING_STALL over SHOOTING_STALL_ITERATIONS Jacobians stops
+    there, well inside its budget, and says so; with no stall rule (0) it goes on to its budget. The search here is
+    one that never moves (each iteration a Jacobian at the start), so its gap stalls from the first."""
+    from lnf import closure_choice
+
+    def motionless(fun, x0, jac, max_nfev, **kwargs):  # Levenberg–Marquardt that never finds a better point
+        fun(x0)
+        while True:
+            jac(x0)
+
+    q0 = torch.tensor([[0.5], [-0.8]], dtype=torch.float64)
+    motion = get_integrator("rk4").integrate(_UnitSpring(), q0, torch.zeros_like(q0), 0.1, 40)
+    monkeypatch.setattr(closure_choice, "SHOOTING_WINDOW", 10)
+    monkeypatch.setattr(closure_choice, "least_squares", motionless)
+    caplog.set_level("INFO", logger="lnf.closure")
+    for stall in (closure_choice.SHOOTING_STALL, 0.0):
+        monkeypatch.setattr(closure_choice, "SHOOTING_STALL", stall)
+        caplog.clear()
+        fitted = PotentialClosure(1, 2).double()
+        fitted.scale.fill_(2.0)
+        fitted.coef.fill_(0.3)
+        model = _ClosedModel(_UnitSpring(), fitted)
+        vectors, rollout = [0], model.rollout
+
+        def counted(q0, *a, **k):
+            if k["steps"] == 10:  # the windows' stage: 2 trajectories × 4 windows rows per vector
+                vectors[0] += len(q0) // 8
+            return rollout(q0, *a, **k)
+
+        model.rollout = counted
+        closure_choice.shoot_closure(model, motion.q, motion.v, 0.1, None, "rk4", iterations_per_term=5)
+        budget = 5 * 3 ** 2
+        if stall:  # the first trial, then Jacobians of 3 vectors until the one that would follow a stall
+            assert vectors[0] == 1 + 3 * closure_choice.SHOOTING_STALL_ITERATIONS
+            assert caplog.text.count("stalled: the gap shrank by less than 1% over 3 iterations") == 2
+        else:
+            assert budget - 3 < vectors[0] <= budget and "(its budget spent)" in caplog.text
+            assert "stalled" not in caplog.text
+
+
 def test_the_closure_fit_reads_a_forced_scenes_loads_where_the_file_stores_none(tmp_path, monkeypatch):
     """A generated actuated cantilever keeps its loads (A, f) in the states, not in a `controls` dataset: the closure's
     residual and shooting must act them, as the evaluation does (they once ran without the actuation)."""
