@@ -3,9 +3,10 @@
 For H(q̃, p̃) = ½ p̃ᵀ M̃(q̃)⁻¹ p̃ + Ṽ(q̃) a step solves
     q̃₁ = q̃₀ + h ∂H/∂p̃(q̃ₘ, p̃ₘ),   p̃₁ = p̃₀ − h ∂H/∂q̃(q̃ₘ, p̃ₘ),   (·)ₘ = ((·)₀ + (·)₁)/2,
 with ∂H/∂p̃ = q̃̇ = M̃⁻¹p̃ and ∂H/∂q̃ = g̃ − ∂T̃/∂q̃|_{q̃̇}, by fixed-point iteration from the previous step's
-increments; rows it does not converge in `max_iter` iterations, or on which it stops contracting (a step that is
-stiff against the fastest reduced frequency, as pulled-back elastic dynamics at d ≥ 2 are), are solved by
-Newton's method (`newton`, on by default), and a trajectory that neither converges is reported as diverged.
+increments; rows it does not converge in `max_iter` iterations, on which it stops contracting, or which it would
+take more than `NEWTON_AFTER` further iterations to converge at the slow rate it contracts (a step that is stiff against
+the fastest reduced frequency, as pulled-back elastic dynamics at d ≥ 2 are), are solved by Newton's method
+(`newton`, on by default), and a trajectory that neither converges is reported as diverged.
 `order=4` (the default, as in conf/integrator/implicit_midpoint.yaml) composes three midpoint steps
 (Suzuki–Yoshida triple jump): still symplectic, fourth order, energy error O(h⁴); `order=2` is one plain
 midpoint step per step.
@@ -18,6 +19,14 @@ from torch import Tensor
 
 from lnf.integrators.base import FixedStepIntegrator, central_jacobian
 from lnf.utils import require
+
+#: the fixed-point iteration hands a solve to Newton's method once a row it has not converged contracts slowly (each
+#: correction more than NEWTON_SLOW_RATE of the last, from its third iteration on) and would need more than
+#: NEWTON_AFTER further iterations at that rate: on the cantilevers' tables, where the substeps keep h·ω_max near 1,
+#: it contracted at ~0.5 and took 15 iterations a solve, where Newton's method with the rollout's kept Jacobian takes
+#: two or three. A fast contraction (the pendulum's) keeps the fixed-point iteration and its numbers, and so does a
+#: system of more than NEWTON_MAX_DIM coordinates (a full-order model: its Jacobian would cost 4d evaluations)
+NEWTON_SLOW_RATE, NEWTON_AFTER, NEWTON_MAX_DIM = 0.25, 6, 16
 
 
 class ImplicitMidpoint(FixedStepIntegrator):
@@ -71,12 +80,14 @@ class ImplicitMidpoint(FixedStepIntegrator):
         """Solve one midpoint step; returns rates (Δq/h, Δp/h). Rows that do not converge become NaN.
 
         Fixed-point iteration first (cheap, converges when h is small against the fastest time scale);
-        rows it leaves unconverged after `max_iter` go to Newton's method (if `newton`), whose Jacobian comes
-        from central differences of the dynamics (4d evaluations, relative error about eps^(2/3)).
+        rows it leaves unconverged after `max_iter`, or would take more than :data:`NEWTON_AFTER` more iterations
+        to converge, go to Newton's method (if `newton`), whose Jacobian comes from central differences of the
+        dynamics (4d evaluations, relative error about eps^(2/3)); it starts from the last iterate where the
+        iteration contracted, from the predictor where it did not.
         """
         tol = max(self.tol, 16 * torch.finfo(q.dtype).eps) * (1.0 + q.abs().amax(-1) + p.abs().amax(-1))
         guess = (rq, rp)  # Newton restarts from the predictor, not from a fixed-point iterate that ran away
-        first = None
+        first = last = None
         limit = 3 if self._stiff else self.max_iter  # a stiff rollout: Newton after 3 iterations, not 50
         for it in range(1, limit + 1):
             vm, force = dynamics.hamiltonian_derivatives(q + 0.5 * h * rq, p + 0.5 * h * rp, t + 0.5 * h)
@@ -90,6 +101,12 @@ class ImplicitMidpoint(FixedStepIntegrator):
             # Newton's method takes these rows at once instead of after max_iter wasted evaluations
             if self.newton and it >= 10 and bool((~(err <= tol) & ~(err < first)).any()):
                 break
+            if self.newton and it >= 3 and q.shape[-1] <= NEWTON_MAX_DIM and self._slow(err, last, tol):
+                # contracting, slowly: Newton goes on from these iterates (from the predictor where they did not)
+                contracting = (err < last)[:, None]
+                guess = (torch.where(contracting, rq, guess[0]), torch.where(contracting, rp, guess[1]))
+                break
+            last = err
         self.iterations.append(it)
         failed = ~(err <= tol)
         if self.newton:
@@ -97,6 +114,14 @@ class ImplicitMidpoint(FixedStepIntegrator):
             rq, rp, failed = self._newton(dynamics, q, p, *guess, h, t, tol, failed, fallback=(rq, rp))
         nan = torch.tensor(float("nan"), dtype=q.dtype, device=q.device)
         return torch.where(failed[:, None], nan, rq), torch.where(failed[:, None], nan, rp)
+
+    @staticmethod
+    def _slow(err: Tensor, last: Tensor, tol: Tensor) -> bool:
+        """Whether a row not converged (err > tol, (B,)) contracts at a rate err / last over NEWTON_SLOW_RATE and
+        would need more than NEWTON_AFTER further fixed-point iterations at it."""
+        rate = (err / last.clamp_min(1e-300)).clamp(1e-6, 1.0 - 1e-6)
+        left = torch.log(tol / err.clamp_min(1e-300)) / torch.log(rate)
+        return bool((~(err <= tol) & (rate > NEWTON_SLOW_RATE) & (left > NEWTON_AFTER)).any())
 
     def _newton(self, dynamics, q: Tensor, p: Tensor, rq: Tensor, rp: Tensor, h: float, t: float, tol: Tensor,
                 rows: Tensor, fallback: tuple[Tensor, Tensor]) -> tuple[Tensor, Tensor, Tensor]:
