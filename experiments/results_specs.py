@@ -158,6 +158,11 @@ SPECS: dict[str, Spec] = {
         "study", "python -m experiments.closure_ablation --ckpt <the d = 3 checkpoints of model_size-{elastic,"
         "elastic_actuated}-d34> --degree 4 --threads 1 --out outputs/studies/closure_ablation-d3",
         raw="outputs/studies/closure_ablation-d3", table=0, csv="closure.json"),
+    # the same at d = 4 on the cantilever (degree 2, 14 terms, the 16⁴ table; a stage stops when it stalls)
+    "closure_ablation-elastic-d4": Spec(
+        "study", "python -m experiments.closure_ablation --ckpt <the d = 4 checkpoint of model_size-elastic-d34> "
+        "--degree 4 --threads 1 --out outputs/studies/closure_ablation-elastic-d4",
+        raw="outputs/studies/closure_ablation-elastic-d4", table=0, csv="closure.json"),
     **{f"seeds-{s}": _study("seeds", s) for s in SCENES},
     "cost_scaling-pendulum": _study("cost_scaling", "pendulum"),
     **{f"roofline-{s}": _study("roofline", s) for s in SCENES},
