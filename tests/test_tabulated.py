@@ -227,6 +227,25 @@ def test_a_table_too_coarse_to_trust_leaves_the_model_on_the_exact_pullback(pend
     assert isinstance(model.dynamics(), TabulatedDynamics)
 
 
+def test_a_table_too_rough_at_its_point_cap_grows_past_it_before_it_is_left(pendulum, monkeypatch):
+    """A table stops at dynamics.max_table_points when it is within TABLE_MAX_ERROR there; one still more than
+    TABLE_MAX_ERROR off may grow to TABLE_ROUGH_GROWTH times as many nodes."""
+    from lnf import tabulated
+    from lnf.model import LagrangianNeuralField
+
+    exact = LagrangianNeuralField(pendulum, width=16, hyper_width=8).lagrangian_dynamics()
+
+    def nodes() -> int:  # sin over ±2 rad: 2 nodes are far more than 1 % off
+        return TabulatedDynamics(exact, [-2.0], [2.0], min_nodes=2, max_table_points=2).info["table_nodes"]
+
+    assert nodes() == 2 * tabulated.TABLE_ROUGH_GROWTH  # 8 nodes, past the cap of 2
+    monkeypatch.setattr(tabulated, "TABLE_ROUGH_GROWTH", 1)
+    assert nodes() == 2
+    monkeypatch.setattr(tabulated, "TABLE_ROUGH_GROWTH", 4)
+    monkeypatch.setattr(tabulated, "TABLE_MAX_ERROR", float("inf"))  # any error trusted: the cap holds
+    assert nodes() == 2
+
+
 def test_a_tabulated_rollout_runs_on_one_torch_thread_and_restores_the_callers_count(pendulum):
     from lnf.integrators.rk4 import RK4
     from lnf.model import LagrangianNeuralField
