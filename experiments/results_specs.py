@@ -163,6 +163,10 @@ SPECS: dict[str, Spec] = {
         "study", "python -m experiments.closure_ablation --ckpt <the d = 4 checkpoint of model_size-elastic-d34> "
         "--degree 4 --threads 1 --out outputs/studies/closure_ablation-elastic-d4",
         raw="outputs/studies/closure_ablation-elastic-d4", table=0, csv="closure.json"),
+    "closure_ablation-elastic_actuated-d4": Spec(
+        "study", "python -m experiments.closure_ablation --ckpt <the d = 4 checkpoint of model_size-elastic_actuated-d34> "
+        "--degree 4 --threads 1 --out outputs/studies/closure_ablation-elastic_actuated-d4",
+        raw="outputs/studies/closure_ablation-elastic_actuated-d4", table=0, csv="closure.json"),
     **{f"seeds-{s}": _study("seeds", s) for s in SCENES},
     "cost_scaling-pendulum": _study("cost_scaling", "pendulum"),
     **{f"roofline-{s}": _study("roofline", s) for s in SCENES},
