@@ -365,8 +365,8 @@ class LagrangianNeuralField(ReducedModel):
         if table.info["table_error"] > TABLE_MAX_ERROR:
             log.warning("dynamics=tabulated: the table of %d nodes per axis (%d points, dynamics.max_nodes and "
                         "dynamics.max_table_points × TABLE_ROUGH_GROWTH allow no more) is %.1e off the exact "
-                        "pullback, over the %.0e a rollout can trust (lnf.tabulated.TABLE_MAX_ERROR): rolling out on the exact pullback "
-                        "instead, slower", table.info["table_nodes"], table.info["table_points"],
+                        "pullback, over the %.0e a rollout can trust (lnf.tabulated.TABLE_MAX_ERROR): rolling out on "
+                        "the exact pullback instead, slower", table.info["table_nodes"], table.info["table_points"],
                         table.info["table_error"], TABLE_MAX_ERROR)
             return exact
         return table
