@@ -168,7 +168,7 @@ def shoot_closure(model: Any, codes: torch.Tensor, velocities: torch.Tensor, dt:
     base = model.dynamics()
     dynamics = ClosedDynamics(base.base if isinstance(base, ClosedDynamics) else base, closure)
     table = getattr(dynamics.base, "table", None)  # TabulatedDynamics: its Chebyshev table
-    cheap = getattr(dynamics, "small_tensors", False) and (table is None or table.n ** table.d <= SHOOTING_TABLE_NODES)
+    cheap = getattr(dynamics, "small_tensors", False) and (table is None or table.size <= SHOOTING_TABLE_NODES)
     count = SHOOTING_TRAJECTORIES if cheap else SHOOTING_TRAJECTORIES_EXACT
     rows = np.unique(np.linspace(0, codes.shape[0] - 1, min(count, codes.shape[0])).round().astype(int))
     q, v = model.as_model(codes[rows]), model.as_model(velocities[rows])

@@ -340,7 +340,8 @@ def evaluate_rollouts(
     metrics["fields_seconds_per_trajectory"] = (rollout_seconds + decode_seconds) / n  # rollout + decoding
     metrics.update(decoding_info)
     metrics.update(reduction_info)
-    for key in ("table_nodes", "table_points", "table_error", "table_seconds", "table_fallback_fraction"):  # offline cost of a tabulated dynamics
+    for key in ("table_nodes", "table_points", "table_terms", "table_error", "table_seconds",
+                "table_fallback_fraction"):  # offline cost of a tabulated dynamics
         if key in table_info:
             metrics[key] = float(table_info[key])
     return RolloutEvaluation(

@@ -50,6 +50,17 @@ TABLE_ROUGH_GROWTH = 4
 #: TENSOR_BASIS_ELEMENTS at a time) instead of axis by axis: at d = 3 (32³ nodes, 160 rows) 3× faster on one CPU
 #: thread, at d = 4 (16⁴) 5× (python -m experiments.bench_table); at d = 2 not steadily faster: it keeps its rounding
 TENSOR_BASIS_FROM_DIM, TENSOR_BASIS_ELEMENTS = 3, 1 << 22
+#: a table that misses its tolerance doubles the nodes of each axis whose coefficient tail is at least this share of
+#: the worst axis's (ChebyshevTable.axis_tails): the others are resolved already, and more nodes there only cost
+TABLE_REFINE_SHARE = 0.1
+#: the nodes per axis start at dynamics.min_nodes, halved (not below 4) while they would leave less than this factor
+#: of room under dynamics.max_table_points: at d = 4, 16⁴ is the whole cap, and the soft body needs 128 nodes along
+#: one axis and 8 along the others (its d = 4 table was 11 % off at 16⁴)
+TABLE_START_ROOM = 8
+#: once built, each axis's series is cut after its last coefficient weighing at least one of these shares of the
+#: table's error (or tolerance), the largest share whose cut table stays within it: an evaluation costs Π_i n_i per
+#: row, and the soft body's d = 3 table needs 8 nodes on its narrow axes to be built, fewer to be read
+TABLE_TRIM_SHARES = (1e-2, 1e-3, 1e-4)
 
 
 def force_separates(scene: Any) -> bool:
@@ -65,6 +76,15 @@ def force_separates(scene: Any) -> bool:
     return force is None or (separate is not None and separate() is not None)
 
 
+def start_nodes(min_nodes: int, d: int, max_table_points: int) -> int:
+    """The nodes per axis a table of d codes starts from: `min_nodes`, halved (not below 4) while they would leave
+    less than :data:`TABLE_START_ROOM` × room under `max_table_points` to grow."""
+    start = min_nodes
+    while start > 4 and start ** d * TABLE_START_ROOM > max_table_points:
+        start //= 2
+    return start
+
+
 def _symmetric_pairs(d: int) -> list[tuple[int, int]]:
     return [(i, j) for i in range(d) for j in range(i, d)]
 
@@ -72,39 +92,79 @@ def _symmetric_pairs(d: int) -> list[tuple[int, int]]:
 class ChebyshevTable:
     """Tensor-product Chebyshev interpolant of vector-valued f: [low, high]^d → ℝ^c, with all first derivatives.
 
-    Built from values `f_nodes` (n, …, n, c) at Chebyshev points of the first kind
-    (``numpy.polynomial.chebyshev.chebpts1``) on each axis; :meth:`__call__` returns (B, 1 + d, c): the
-    values and ∂f/∂q_i (i = 1…d) of the interpolating polynomial at q (B, d); (B, 1, c), the values only, when
-    built with ``derivatives=False``. ``keep_float64=False`` keeps no float64 copy of the coefficients.
+    Built from values `f_nodes` (n_1, …, n_d, c) at Chebyshev points of the first kind
+    (``numpy.polynomial.chebyshev.chebpts1``), n_i on axis i (``nodes``; an axis along which f varies slowly needs
+    fewer); :meth:`__call__` returns (B, 1 + d, c): the values and ∂f/∂q_i (i = 1…d) of the interpolating polynomial
+    at q (B, d); (B, 1, c), the values only, when built with ``derivatives=False``. ``keep_float64=False`` keeps no
+    float64 copy of the coefficients.
     """
 
     def __init__(self, f_nodes: np.ndarray, low: Sequence[float], high: Sequence[float],
                  dtype: torch.dtype = torch.float64, device: "torch.device | str" = "cpu",
                  derivatives: bool = True, keep_float64: bool = True) -> None:
         d = len(low)
-        n = f_nodes.shape[0]
-        if f_nodes.ndim != d + 1 or any(s != n for s in f_nodes.shape[:d]):
-            raise ValueError(f"f_nodes must have shape ({', '.join(['n'] * d)}, c), got {f_nodes.shape}")
-        self.d, self.n, self.channels = d, n, f_nodes.shape[-1]
+        if f_nodes.ndim != d + 1 or min(f_nodes.shape[:d]) < 1:
+            raise ValueError(f"f_nodes must have shape (n_1, …, n_{d}, c) for a box of {d} axes, got {f_nodes.shape}")
         lo, hi = np.asarray(low, dtype=np.float64), np.asarray(high, dtype=np.float64)
         if not np.all(hi > lo):
             raise ValueError(f"table box needs high > low on every axis, got low={lo.tolist()}, high={hi.tolist()}")
-        inv_vander = np.linalg.inv(C.chebvander(C.chebpts1(n), n - 1))  # values at the nodes → coefficients
         coef = np.asarray(f_nodes, dtype=np.float64)
-        for axis in range(d):
+        for axis, n in enumerate(f_nodes.shape[:d]):  # values at the nodes → coefficients, axis by axis
+            inv_vander = np.linalg.inv(C.chebvander(C.chebpts1(n), n - 1))
             coef = np.moveaxis(np.tensordot(inv_vander, coef, axes=([1], [axis])), 0, axis)
+        self._set_coefficients(coef, lo, hi, dtype, device, derivatives, keep_float64)
+
+    def _set_coefficients(self, coef: np.ndarray, lo: np.ndarray, hi: np.ndarray, dtype: torch.dtype,
+                          device: "torch.device | str", derivatives: bool, keep_float64: bool) -> None:
+        """Hold the Chebyshev coefficients `coef` (n_1, …, n_d, c) of the values and those of their derivatives."""
+        d = len(lo)
+        self.d, self.channels, self._build = d, coef.shape[-1], (lo, hi, dtype, device, derivatives, keep_float64)
+        #: coefficients per axis (the nodes it was built from, or fewer once cut: :meth:`truncated`); n: the most on
+        #: any axis; size: their product (an evaluation's cost per channel)
+        self.nodes = tuple(int(s) for s in coef.shape[:d])
+        self.n, self.size = max(self.nodes), math.prod(self.nodes)
         blocks = [coef]
         for axis in range(d if derivatives else 0):  # ∂/∂q_axis = chebder along that axis × dx/dq
-            der = C.chebder(coef, axis=axis) * (2.0 / (hi[axis] - lo[axis]))
+            der = C.chebder(coef, axis=axis) * (2.0 / (hi[axis] - lo[axis])) if self.nodes[axis] > 1 else \
+                np.zeros_like(coef[tuple(slice(0, 0) if a == axis else slice(None) for a in range(coef.ndim))])
             pad = [(0, 0)] * coef.ndim
             pad[axis] = (0, 1)
             blocks.append(np.pad(der, pad))
-        packed = np.stack(blocks, axis=-2)  # (n, …, n, 1 + d, c), or (n, …, n, 1, c) without derivatives
+        packed = np.stack(blocks, axis=-2)  # (n_1, …, n_d, 1 + d, c), or (n_1, …, n_d, 1, c) without derivatives
         self.coef = torch.as_tensor(packed, dtype=dtype, device=device)
         self.coef64 = torch.as_tensor(packed, dtype=torch.float64, device=device) if keep_float64 else None
         self.center = torch.as_tensor((hi + lo) / 2, dtype=dtype, device=device)
         self.half = torch.as_tensor((hi - lo) / 2, dtype=dtype, device=device)
-        self.k = torch.arange(n, dtype=dtype, device=device)
+        self.k = torch.arange(self.n, dtype=dtype, device=device)
+
+    def truncated(self, terms: Sequence[int]) -> "ChebyshevTable":
+        """The interpolant with its values' series cut to the first `terms`[i] coefficients along axis i, its
+        derivatives those of the cut series (so a table of M̃, Ṽ stays a Lagrangian system). Needs the float64
+        coefficients (``keep_float64``)."""
+        if self.coef64 is None:
+            raise ValueError("truncated() needs the table's float64 coefficients (built with keep_float64=True)")
+        cut = self.coef64[tuple(slice(0, max(1, int(t))) for t in terms)][..., 0, :].cpu().numpy()
+        table = ChebyshevTable.__new__(ChebyshevTable)
+        table._set_coefficients(cut, *self._build)
+        return table
+
+    def shape_text(self) -> str:
+        """'64 nodes per axis', or '256 × 16 × 16 nodes' where the axes differ."""
+        if len(set(self.nodes)) == 1:
+            return f"{self.n} nodes per axis"
+        return " × ".join(map(str, self.nodes)) + " nodes"
+
+    def axis_tails(self, weights: Optional[Tensor] = None) -> list[float]:
+        """How well each axis is resolved: the largest |coefficient| × `weights` (1 + d, c) (default: 1 / the
+        largest of each column) in the upper half of that axis's degrees (k_i ≥ n_i / 2), over the values and
+        derivatives. A smooth f's coefficients decay with the degree, so an axis whose tail is far below the
+        others' gains nothing from more nodes."""
+        coef = (self.coef64 if self.coef64 is not None else self.coef.double()).abs()
+        if weights is None:
+            scale = coef.amax(dim=tuple(range(self.d)), keepdim=True)  # per column; a column of round-off: none
+            weights = 1.0 / scale.clamp_min(1e-8 * float(scale.max()) + 1e-300)
+        magnitude = (coef * weights.to(coef)).flatten(self.d)
+        return [float(magnitude.narrow(axis, n // 2, n - n // 2).max()) for axis, n in enumerate(self.nodes)]
 
     def scaled(self, q: Tensor) -> Tensor:
         """x ∈ [−1, 1]^d inside the box (B, d)."""
@@ -120,20 +180,21 @@ class ChebyshevTable:
         """The interpolant at scaled points x (B, d) (clamped to [−1, 1]): (B, 1 + d, c)."""
         x = x.clamp(-1.0, 1.0)
         basis = torch.cos(torch.acos(x).unsqueeze(-1) * self.k.to(x))  # T_k(x) = cos(k arccos x): (B, d, n)
+        axes = [basis[:, axis, :n] for axis, n in enumerate(self.nodes)]  # (B, n_i) each
         if self.d == 1:
-            return (basis[:, 0] @ coef.reshape(self.n, -1)).reshape(x.shape[0], *coef.shape[1:])
+            return (axes[0] @ coef.reshape(self.nodes[0], -1)).reshape(x.shape[0], *coef.shape[1:])
         if self.d >= TENSOR_BASIS_FROM_DIM:
-            flat, rows = coef.reshape(self.n ** self.d, -1), max(1, TENSOR_BASIS_ELEMENTS // self.n ** self.d)
+            flat, rows = coef.reshape(self.size, -1), max(1, TENSOR_BASIS_ELEMENTS // self.size)
             parts = []
-            for part in basis.split(rows):  # Π_axis T_k(x_axis) over the nodes, in coef's row-major order
-                weights = part[:, 0]
+            for start in range(0, x.shape[0], rows):  # Π_axis T_k(x_axis) over the nodes, in coef's row-major order
+                weights = axes[0][start:start + rows]
                 for axis in range(1, self.d):
-                    weights = (weights[:, :, None] * part[:, axis, None, :]).reshape(len(part), -1)
+                    weights = (weights[:, :, None] * axes[axis][start:start + rows, None, :]).reshape(len(weights), -1)
                 parts.append(weights @ flat)
             return torch.cat(parts).reshape(x.shape[0], *coef.shape[self.d:])
-        out = torch.einsum("bk,k...->b...", basis[:, 0], coef)
+        out = torch.einsum("bk,k...->b...", axes[0], coef)
         for axis in range(1, self.d):
-            out = torch.einsum("bk,bk...->b...", basis[:, axis], out)
+            out = torch.einsum("bk,bk...->b...", axes[axis], out)
         return out  # (B, 1 + d, c)
 
 
@@ -148,8 +209,10 @@ class TabulatedDynamics:
         low, high: the box of codes (d,) each, e.g. the training codes' range widened by a margin.
         tol: target relative interpolation error of M̃ and of g̃ = ∂Ṽ/∂q̃ (and of a force's D̃ and ∂W/∂q̃) at check
             points (relative to their largest magnitude on the box), floored at 10 rounding units of the rollout's dtype (1.2e-6 for
-            float32); nodes per axis double from `min_nodes` until it is met.
-        min_nodes, max_nodes: nodes per axis (the table holds nodes^d evaluations of the exact pullback).
+            float32); the nodes of the axes that need them double (:data:`TABLE_REFINE_SHARE`) from `min_nodes`
+            (fewer from d = 4: :data:`TABLE_START_ROOM`) until it is met; then each axis's series is cut to the
+            terms the tolerance needs (:data:`TABLE_TRIM_SHARES`).
+        min_nodes, max_nodes: nodes per axis (the table holds Π_i n_i evaluations of the exact pullback).
         max_table_points: refuse tables larger than this (d ≥ 3 grows as nodes^d); use the exact dynamics.
             A table still more than :data:`TABLE_MAX_ERROR` off there grows up to :data:`TABLE_ROUGH_GROWTH` times.
 
@@ -216,32 +279,75 @@ class TabulatedDynamics:
         tol = max(float(tol), 10 * torch.finfo(self.dtype).eps, 100 * torch.finfo(build_dtype).eps)
         check = self._check_points(64 * self.d, build_dtype)
         exact_check = self._exact_channels(check, self.builder)
-        n, error = int(min_nodes), math.inf
+        self._error_weights = self._weights(exact_check)
+        nodes, error = [start_nodes(int(min_nodes), self.d, int(max_table_points))] * self.d, math.inf
         while True:
-            self.table = ChebyshevTable(self._node_values(n), self.low, self.high, self.dtype, self.device)
+            self.table = ChebyshevTable(self._node_values(nodes), self.low, self.high, self.dtype, self.device)
             error = self._relative_error(check, exact_check)
             cap = int(max_table_points) * (TABLE_ROUGH_GROWTH if error > TABLE_MAX_ERROR else 1)
-            if error <= tol or 2 * n > int(max_nodes) or (2 * n) ** self.d > cap:
+            grown = [] if error <= tol else self._refined(nodes, int(max_nodes), cap)
+            if not grown:
                 break
-            n *= 2
+            nodes = grown
+        built = list(self.table.nodes)
+        self.table, error = self._trimmed(check, exact_check, error, tol)
         if self.d == 1 and not (self._last_nodes[..., 0] > 0).all():  # M̃ at the nodes
             raise ValueError(f"M̃ is not positive on the table box {self.low}..{self.high} (φ is not an immersion "
                              "there); use dynamics=lagrangian or a smaller dynamics.margin")
         if self.d == 1 and self.separated is None:  # the scalar fast path: columns (M̃, Ṽ, ½ ∂M̃/∂q̃, ∂Ṽ/∂q̃), x = (q̃ − c) / h
+            n = self.table.n
             coef = self.table.coef.reshape(n, 4)
             self._coef1 = torch.stack([coef[:, 0], coef[:, 1], 0.5 * coef[:, 2], coef[:, 3]], -1)
             self._center1, self._inv_half1 = float(self.table.center[0]), 1.0 / float(self.table.half[0])
             self._k1 = self.table.k
-        self.info: dict[str, Any] = {"table_nodes": n, "table_points": n ** self.d, "table_error": error,
-                                     "table_tol": tol, "table_seconds": time.perf_counter() - start,
+        self.info: dict[str, Any] = {"table_nodes": max(built), "table_shape": built, "table_points": math.prod(built),
+                                     "table_terms": self.table.size, "table_terms_shape": list(self.table.nodes),
+                                     "table_error": error, "table_tol": tol, "table_seconds": time.perf_counter() - start,
                                      "table_low": self.low, "table_high": self.high}
         if error > tol:
-            log.warning(self._roughness_message(n, error, tol))
+            log.warning(self._roughness_message(error, tol))
 
-    def _roughness_message(self, n: int, error: float, tol: float) -> str:
+    def _trimmed(self, check: Tensor, exact: Tensor, error: float, tol: float) -> tuple[ChebyshevTable, float]:
+        """The table with each axis's series cut after its last coefficient of weight ≥ share × max(`error`, `tol`)
+        (weighted as :meth:`_relative_error` measures), for the first share of :data:`TABLE_TRIM_SHARES` whose
+        error at the check points stays within max(`error`, `tol`); else the table as built, and its `error`."""
+        target = max(error, tol)
+        weighted = (self.table.coef64.abs() * self._error_weights.to(self.table.coef64)).flatten(self.d).amax(-1)
+        for share in TABLE_TRIM_SHARES:
+            terms = []
+            for axis in range(self.d):
+                others = tuple(a for a in range(self.d) if a != axis)
+                along = weighted.amax(dim=others) if others else weighted  # (n_axis,)
+                kept = (along >= share * target).nonzero()
+                terms.append(max(2, int(kept.max()) + 1) if len(kept) else 2)
+            if tuple(terms) == self.table.nodes:
+                break
+            table = self.table.truncated(terms)
+            cut_error = self._relative_error(check, exact, table)
+            if cut_error <= target:
+                return table, cut_error
+        return self.table, error
+
+    def _refined(self, nodes: list[int], max_nodes: int, cap: int) -> list[int]:
+        """The next nodes per axis: doubled on every axis whose coefficient tail (:meth:`ChebyshevTable.axis_tails`)
+        is within :data:`TABLE_REFINE_SHARE` of the worst axis's, the worst first, as far as `max_nodes` per axis
+        and `cap` nodes in all allow; [] when no axis can grow. Where M̃ and Ṽ vary alike along every axis, all
+        double (an isotropic table); the soft body's d = 3 codes span 6.7 along the first axis and 0.02–0.2 along
+        the others, where degree 5 is enough: there only the first grows."""
+        tails = self.table.axis_tails(self._error_weights)
+        grown = list(nodes)
+        for axis in sorted(range(self.d), key=lambda a: -tails[a]):
+            if tails[axis] < TABLE_REFINE_SHARE * max(tails):
+                break
+            trial = grown[:axis] + [2 * grown[axis]] + grown[axis + 1:]
+            if trial[axis] <= max_nodes and math.prod(trial) <= cap:
+                grown = trial
+        return grown if grown != nodes else []
+
+    def _roughness_message(self, error: float, tol: float) -> str:
         """Why a table that misses its tolerance matters: φ's pullback wiggles in q̃; for d = 1, the range of the
         stiffness Ṽ''/M̃ on the box (by finite differences of the table's Ṽ') and how often it changes sign."""
-        msg = (f"the pulled-back M̃ and Ṽ are not smooth in q̃: a Chebyshev table of {n} nodes per axis reaches a "
+        msg = (f"the pulled-back M̃ and Ṽ are not smooth in q̃: a Chebyshev table of {self.table.shape_text()} reaches a "
                f"relative error of {error:.1e} (dynamics.tol {tol:.0e}). Rollouts read its interpolant; a pullback "
                "that wiggles in q̃ (an embedding that learned fine detail across its codes) often has regions of "
                "negative stiffness where rollouts diverge")
@@ -268,7 +374,7 @@ class TabulatedDynamics:
             self._continue_off_box = False
 
     def __repr__(self) -> str:
-        return (f"TabulatedDynamics(d={self.d}, nodes={self.info['table_nodes']}, "
+        return (f"TabulatedDynamics(d={self.d}, {self.table.shape_text()}, "
                 f"error={self.info['table_error']:.1e}, box={self.low}..{self.high})")
 
     # -- building ------------------------------------------------------------------------------------
@@ -289,13 +395,12 @@ class TabulatedDynamics:
                 out.append(torch.cat(parts + tail, -1))
         return torch.cat(out, 0)
 
-    def _node_values(self, n: int) -> np.ndarray:
-        x = C.chebpts1(n)
-        axes = [lo + (hi - lo) * (x + 1) / 2 for lo, hi in zip(self.low, self.high)]
+    def _node_values(self, nodes: Sequence[int]) -> np.ndarray:
+        axes = [lo + (hi - lo) * (C.chebpts1(n) + 1) / 2 for n, lo, hi in zip(nodes, self.low, self.high)]
         mesh = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, self.d)
-        nodes = torch.as_tensor(mesh, dtype=self.builder.density_weights.dtype, device=self.device)
-        values = self._exact_channels(nodes, self.builder)[:, : self.channels]
-        self._last_nodes = values.double().cpu().numpy().reshape(*([n] * self.d), -1)
+        points = torch.as_tensor(mesh, dtype=self.builder.density_weights.dtype, device=self.device)
+        values = self._exact_channels(points, self.builder)[:, : self.channels]
+        self._last_nodes = values.double().cpu().numpy().reshape(*nodes, -1)
         return self._last_nodes
 
     def _check_points(self, count: int, dtype: torch.dtype) -> Tensor:
@@ -304,15 +409,33 @@ class TabulatedDynamics:
         lo, hi = torch.tensor(self.low, dtype=torch.float64), torch.tensor(self.high, dtype=torch.float64)
         return (lo + (hi - lo) * u).to(dtype).to(self.device)
 
-    def _relative_error(self, q: Tensor, exact: Tensor) -> float:
-        """max over M̃ entries and g̃ (and a force's D̃ entries and ∂W_k/∂q̃) of |table − exact| / max|exact| at the
-        check points (in the table's float64)."""
+    def _weights(self, exact: Tensor) -> Tensor:
+        """(1 + d, c): 1 / the scale each part of the table is measured against in :meth:`_relative_error` (M̃'s
+        entries, g̃ = ∂Ṽ/∂q̃, a force's D̃ entries and ∂W_k/∂q̃), from the exact values `exact` at the check points;
+        0 for the parts it does not measure (Ṽ itself, ∂M̃/∂q̃, follow from them)."""
         m, c = len(self.pairs), self.channels
+        weights = torch.zeros(1 + self.d, c, dtype=torch.float64)
+
+        def inverse(part: Tensor, floor: float = 1e-20) -> float:  # the floors of _relative_error
+            return 1.0 / max(float(part.abs().max()), floor)
+
+        weights[0, :m] = inverse(exact[:, :m], 1e-300)
+        weights[1:, m] = inverse(exact[:, c:c + self.d])
+        if self.separated is not None:
+            weights[0, self._damping] = inverse(exact[:, self._damping])
+            weights[1:, self._loads] = inverse(exact[:, c + self.d:])
+        return weights
+
+    def _relative_error(self, q: Tensor, exact: Tensor, table: Optional[ChebyshevTable] = None) -> float:
+        """max over M̃ entries and g̃ (and a force's D̃ entries and ∂W_k/∂q̃) of |table − exact| / max|exact| at the
+        check points (in the table's float64; `table`: this one's by default)."""
+        m, c = len(self.pairs), self.channels
+        table = self.table if table is None else table
 
         def error(table: Tensor, truth: Tensor, floor: float = 1e-300) -> Tensor:
             return (table - truth).abs().max() / truth.abs().max().clamp_min(floor)
 
-        out = self.table.evaluate(q.double(), self.table.coef64)
+        out = table.evaluate(q.double(), table.coef64)
         # a flat Ṽ (|g̃| ≲ 1e-20): absolute
         errors = [error(out[:, 0, :m], exact[:, :m]), error(out[:, 1:, m], exact[:, c:c + self.d], 1e-20)]
         if self.separated is not None:

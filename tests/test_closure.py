@@ -353,7 +353,7 @@ class _Table(_UnitSpring):
     small_tensors = True
 
     def __init__(self, n, d):
-        self.table = SimpleNamespace(n=n, d=d)
+        self.table = SimpleNamespace(n=n, d=d, nodes=(n,) * d, size=n ** d)
 
 
 @pytest.mark.parametrize("n, d, expected", [(128, 2, 16), (32, 3, 4), (16, 4, 4)])

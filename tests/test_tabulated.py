@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from lnf.integrators import get_integrator
-from lnf.tabulated import ChebyshevTable, TabulatedDynamics, force_separates
+from lnf.tabulated import ChebyshevTable, TabulatedDynamics, force_separates, start_nodes
 from test_dynamics import _nonlinear_setup, _pendulum_dynamics
 
 
@@ -84,6 +84,60 @@ def test_tabulated_matches_the_exact_nonlinear_pullback_in_2d():
     for a, b in zip(tab.energies(q, v), exact.energies(q, v)):
         torch.testing.assert_close(a, b, atol=1e-9, rtol=1e-9)
     assert tab.fallback_rows == 0
+
+
+def test_chebyshev_table_takes_a_different_number_of_nodes_on_each_axis(monkeypatch):
+    """Nodes per axis may differ (an axis along which f varies slowly needs fewer): the values and derivatives of a
+    polynomial it can hold, the same axis by axis and on the tensor basis, and the last axis's tail far below the
+    first's when f needs more degrees along the first."""
+    from lnf import tabulated
+
+    for nodes in ((9, 4), (9, 3, 5)):
+        d = len(nodes)
+        low, high = [-1.0, 0.0, 0.5][:d], [1.0, 2.0, 1.5][:d]
+        axes = [lo + (hi - lo) * (np.polynomial.chebyshev.chebpts1(n) + 1) / 2 for n, lo, hi in zip(nodes, low, high)]
+        grid = np.meshgrid(*axes, indexing="ij")
+        f = np.stack([grid[0] ** 8 * grid[1] + grid[-1], grid[0] * grid[1]], -1)  # degrees < n_i per axis
+        table = ChebyshevTable(f, low, high)
+        assert table.nodes == nodes and table.size == np.prod(nodes) and table.n == 9
+        q = torch.tensor(np.random.default_rng(d).uniform(low, high, (5, d)))
+        out = table(q)
+        v = q.numpy()
+        torch.testing.assert_close(out[:, 0, 0], torch.tensor(v[:, 0] ** 8 * v[:, 1] + v[:, -1]), atol=1e-9,
+                                   rtol=0)
+        torch.testing.assert_close(out[:, 1, 0], torch.tensor(8 * v[:, 0] ** 7 * v[:, 1]), atol=1e-8, rtol=0)
+        torch.testing.assert_close(out[:, 2, 1], torch.tensor(v[:, 0]), atol=1e-9, rtol=0)
+        monkeypatch.setattr(tabulated, "TENSOR_BASIS_FROM_DIM", 2 if d == 2 else 99)  # the other path
+        torch.testing.assert_close(table(q), out, atol=1e-10, rtol=0)
+        monkeypatch.undo()
+        tails = table.axis_tails()
+        assert tails[0] > 1e-3 and tails[-1] < 1e-6  # degree 8 along the first axis, at most 1 along the last
+
+
+def test_a_table_refines_only_the_axes_that_need_it_and_reads_no_more_terms_than_its_tolerance_needs():
+    """Codes that span a wide range on one axis and a narrow one on the other (as the soft body's do): the nodes
+    double along the wide axis only, the table meets its tolerance with far fewer nodes than a square one, and its
+    series is then cut to the terms that tolerance needs (an evaluation costs their product), still within it."""
+    _, exact, _ = _nonlinear_setup()
+    tab = TabulatedDynamics(exact, [-3.0, -0.05], [3.0, 0.05], tol=1e-10, min_nodes=8)
+    assert tab.info["table_error"] <= 1e-10
+    wide, narrow = tab.info["table_shape"]  # the nodes built
+    assert narrow == 8 and wide >= 32 and tab.info["table_nodes"] == wide and tab.info["table_points"] == wide * narrow
+    cut = tab.info["table_terms_shape"]  # the terms read
+    assert cut[0] <= wide and cut[1] <= narrow and cut != [wide, narrow] and tab.info["table_terms"] == np.prod(cut)
+    assert repr(tab).startswith(f"TabulatedDynamics(d=2, {cut[0]} × {cut[1]} ")
+    q = torch.tensor([[0.3, -0.01], [2.1, 0.04], [-2.5, 0.0]], dtype=torch.float64)
+    v = torch.tensor([[0.5, 1.5], [-2.0, 0.7], [0.1, -0.3]], dtype=torch.float64)
+    torch.testing.assert_close(tab.acceleration(q, v), exact.acceleration(q, v), atol=1e-7, rtol=1e-7)
+    square = TabulatedDynamics(exact, [-3.0, -0.05], [3.0, 0.05], tol=1e-10, min_nodes=wide, max_nodes=wide)
+    assert square.info["table_shape"] == [wide, wide] and wide ** 2 >= 4 * wide * narrow
+
+
+def test_a_table_of_four_codes_starts_with_fewer_nodes_per_axis_so_that_one_axis_can_grow():
+    """16 nodes per axis up to d = 3; at d = 4, 16⁴ would be the whole default cap of 65 536: 8, so one axis can
+    double three times (the soft body's d = 4 table needs 128 nodes along its wide axis); never below 4."""
+    assert [start_nodes(16, d, 65536) for d in (1, 2, 3, 4, 5, 6)] == [16, 16, 16, 8, 4, 4]
+    assert start_nodes(16, 4, 1 << 20) == 16 and start_nodes(3, 4, 65536) == 3
 
 
 def test_rows_off_the_box_use_the_exact_pullback():
