@@ -348,7 +348,7 @@ class LagrangianNeuralField(ReducedModel):
         return self._table_cache[1]
 
     def _build_table(self, quadrature: "Quadrature | QuadratureRule | None") -> Any:
-        from lnf.tabulated import TABLE_MARGIN, TABLE_MAX_ERROR, TabulatedDynamics
+        from lnf.tabulated import TABLE_MARGIN, TABLE_MAX_ERROR, TabulatedDynamics, shape_text
 
         opts = dict(self.tabulation or {})
         margin = float(opts.pop("margin", TABLE_MARGIN))
@@ -363,10 +363,10 @@ class LagrangianNeuralField(ReducedModel):
         table = TabulatedDynamics(exact, (low - margin * span).tolist(), (high + margin * span).tolist(),
                                   builder=self.lagrangian_dynamics(quadrature, dtype=torch.float64), **opts)
         if table.info["table_error"] > TABLE_MAX_ERROR:
-            log.warning("dynamics=tabulated: the table of %s nodes (%d points, dynamics.max_nodes and "
+            log.warning("dynamics=tabulated: the table of %s (%d points, dynamics.max_nodes and "
                         "dynamics.max_table_points × TABLE_ROUGH_GROWTH allow no more) is %.1e off the exact "
                         "pullback, over the %.0e a rollout can trust (lnf.tabulated.TABLE_MAX_ERROR): rolling out on "
-                        "the exact pullback instead, slower", " × ".join(map(str, table.info["table_shape"])),
+                        "the exact pullback instead, slower", shape_text(table.info["table_shape"]),
                         table.info["table_points"],
                         table.info["table_error"], TABLE_MAX_ERROR)
             return exact

@@ -85,6 +85,13 @@ def start_nodes(min_nodes: int, d: int, max_table_points: int) -> int:
     return start
 
 
+def shape_text(nodes: Sequence[int], unit: str = "nodes") -> str:
+    """'64 nodes per axis', or '128 × 8 × 8 nodes' where the axes differ."""
+    if len(set(nodes)) == 1:
+        return f"{nodes[0]} {unit} per axis"
+    return " × ".join(map(str, nodes)) + f" {unit}"
+
+
 def _symmetric_pairs(d: int) -> list[tuple[int, int]]:
     return [(i, j) for i in range(d) for j in range(i, d)]
 
@@ -94,8 +101,8 @@ class ChebyshevTable:
 
     Built from values `f_nodes` (n_1, …, n_d, c) at Chebyshev points of the first kind
     (``numpy.polynomial.chebyshev.chebpts1``), n_i on axis i (``nodes``; an axis along which f varies slowly needs
-    fewer); :meth:`__call__` returns (B, 1 + d, c): the values and ∂f/∂q_i (i = 1…d) of the interpolating polynomial
-    at q (B, d); (B, 1, c), the values only, when built with ``derivatives=False``. ``keep_float64=False`` keeps no
+    fewer); :meth:`__call__` returns (B, 1 + d, c): the values and ∂f/∂q_i (i = 1…d) of the interpolating
+    polynomial at q (B, d); (B, 1, c), the values only, when built with ``derivatives=False``. ``keep_float64=False`` keeps no
     float64 copy of the coefficients.
     """
 
@@ -147,12 +154,6 @@ class ChebyshevTable:
         table = ChebyshevTable.__new__(ChebyshevTable)
         table._set_coefficients(cut, *self._build)
         return table
-
-    def shape_text(self) -> str:
-        """'64 nodes per axis', or '256 × 16 × 16 nodes' where the axes differ."""
-        if len(set(self.nodes)) == 1:
-            return f"{self.n} nodes per axis"
-        return " × ".join(map(str, self.nodes)) + " nodes"
 
     def axis_tails(self, weights: Optional[Tensor] = None) -> list[float]:
         """How well each axis is resolved: the largest |coefficient| × `weights` (1 + d, c) (default: 1 / the
@@ -302,7 +303,8 @@ class TabulatedDynamics:
             self._k1 = self.table.k
         self.info: dict[str, Any] = {"table_nodes": max(built), "table_shape": built, "table_points": math.prod(built),
                                      "table_terms": self.table.size, "table_terms_shape": list(self.table.nodes),
-                                     "table_error": error, "table_tol": tol, "table_seconds": time.perf_counter() - start,
+                                     "table_error": error, "table_tol": tol,
+                                     "table_seconds": time.perf_counter() - start,
                                      "table_low": self.low, "table_high": self.high}
         if error > tol:
             log.warning(self._roughness_message(error, tol))
@@ -347,7 +349,8 @@ class TabulatedDynamics:
     def _roughness_message(self, error: float, tol: float) -> str:
         """Why a table that misses its tolerance matters: φ's pullback wiggles in q̃; for d = 1, the range of the
         stiffness Ṽ''/M̃ on the box (by finite differences of the table's Ṽ') and how often it changes sign."""
-        msg = (f"the pulled-back M̃ and Ṽ are not smooth in q̃: a Chebyshev table of {self.table.shape_text()} reaches a "
+        msg = (f"the pulled-back M̃ and Ṽ are not smooth in q̃: a Chebyshev table of "
+               f"{shape_text(self.info['table_shape'])} reaches a "
                f"relative error of {error:.1e} (dynamics.tol {tol:.0e}). Rollouts read its interpolant; a pullback "
                "that wiggles in q̃ (an embedding that learned fine detail across its codes) often has regions of "
                "negative stiffness where rollouts diverge")
@@ -374,7 +377,8 @@ class TabulatedDynamics:
             self._continue_off_box = False
 
     def __repr__(self) -> str:
-        return (f"TabulatedDynamics(d={self.d}, {self.table.shape_text()}, "
+        return (f"TabulatedDynamics(d={self.d}, {shape_text(self.table.nodes, 'terms')} of "
+                f"{shape_text(self.info['table_shape'])}, "
                 f"error={self.info['table_error']:.1e}, box={self.low}..{self.high})")
 
     # -- building ------------------------------------------------------------------------------------
