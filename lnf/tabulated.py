@@ -61,6 +61,8 @@ TABLE_START_ROOM = 8
 #: table's error (or tolerance), the largest share whose cut table stays within it: an evaluation costs Π_i n_i per
 #: row, and the soft body's d = 3 table needs 8 nodes on its narrow axes to be built, fewer to be read
 TABLE_TRIM_SHARES = (1e-2, 1e-3, 1e-4)
+#: a build that has taken longer than this [s] logs each round (the soft body's d = 4 table: minutes)
+TABLE_LOG_SECONDS = 10.0
 
 
 def force_separates(scene: Any) -> bool:
@@ -285,6 +287,9 @@ class TabulatedDynamics:
         while True:
             self.table = ChebyshevTable(self._node_values(nodes), self.low, self.high, self.dtype, self.device)
             error = self._relative_error(check, exact_check)
+            if time.perf_counter() - start > TABLE_LOG_SECONDS:  # a slow build says how it goes
+                log.info("table of the reduced dynamics: %s, %.1e off the exact pullback (tol %.0e), %.0f s so far",
+                         shape_text(nodes), error, tol, time.perf_counter() - start)
             cap = int(max_table_points) * (TABLE_ROUGH_GROWTH if error > TABLE_MAX_ERROR else 1)
             grown = [] if error <= tol else self._refined(nodes, int(max_nodes), cap)
             if not grown:

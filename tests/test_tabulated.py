@@ -140,6 +140,22 @@ def test_a_table_of_four_codes_starts_with_fewer_nodes_per_axis_so_that_one_axis
     assert start_nodes(16, 4, 1 << 20) == 16 and start_nodes(3, 4, 65536) == 3
 
 
+def test_a_slow_table_build_logs_each_round(monkeypatch, caplog):
+    """A build past TABLE_LOG_SECONDS says each round's nodes and error (the soft body's d = 4 table takes minutes);
+    a quick one says nothing."""
+    from lnf import tabulated
+
+    _, exact, _ = _nonlinear_setup()
+    with caplog.at_level("INFO", logger="lnf.tabulated"):
+        TabulatedDynamics(exact, [-3.0, -0.05], [3.0, 0.05], tol=1e-10, min_nodes=8)
+    assert "table of the reduced dynamics" not in caplog.text
+    monkeypatch.setattr(tabulated, "TABLE_LOG_SECONDS", 0.0)
+    with caplog.at_level("INFO", logger="lnf.tabulated"):
+        TabulatedDynamics(exact, [-3.0, -0.05], [3.0, 0.05], tol=1e-10, min_nodes=8)
+    rounds = [r.getMessage() for r in caplog.records if "table of the reduced dynamics" in r.getMessage()]
+    assert len(rounds) >= 3 and "8 nodes per axis" in rounds[0] and "16 × 8 nodes" in rounds[1]
+
+
 def test_rows_off_the_box_use_the_exact_pullback():
     _, exact, _ = _nonlinear_setup()
     tab = TabulatedDynamics(exact, [-0.2, -0.2], [0.2, 0.2])
