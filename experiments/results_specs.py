@@ -167,6 +167,11 @@ SPECS: dict[str, Spec] = {
         "study", "python -m experiments.closure_ablation --ckpt <the d = 4 checkpoint of model_size-elastic_actuated-d34> "
         "--degree 4 --threads 1 --out outputs/studies/closure_ablation-elastic_actuated-d4",
         raw="outputs/studies/closure_ablation-elastic_actuated-d4", table=0, csv="closure.json"),
+    # the soft body at d = 3, 4 (tables refined per axis since 43afd1d: 128 × 8 × 8 nodes at d = 3, 128 × 8³ at d = 4)
+    **{f"closure_ablation-soft_body-d{d}": Spec(
+        "study", f"python -m experiments.closure_ablation --ckpt <the d = {d} checkpoint of model_size-soft_body-d34> "
+        f"--degree 4 --threads 1 --out outputs/studies/closure_ablation-soft_body-d{d}",
+        raw=f"outputs/studies/closure_ablation-soft_body-d{d}", table=0, csv="closure.json") for d in (3, 4)},
     **{f"seeds-{s}": _study("seeds", s) for s in SCENES},
     "cost_scaling-pendulum": _study("cost_scaling", "pendulum"),
     **{f"roofline-{s}": _study("roofline", s) for s in SCENES},
@@ -241,6 +246,15 @@ SPECS: dict[str, Spec] = {
         ("`energy_drift_long/max`", "energy_drift_long/max"),
         ("rollouts, decoding and checks [s] (`evaluation_seconds`: without start-up, ground truth and figures)",
          "evaluation_seconds"),
+    )),
+    # the soft body's d = 3 table refined per axis (since 43afd1d), on the model-size search's checkpoint, no closure
+    "soft_body_d3_table": Spec("metrics", "python -m lnf.evaluate ckpt_path=<the d = 3 checkpoint of "
+                               "model_size-soft_body-d34> figures=0 threads=1", metrics=(
+        ("table: nodes built · terms read", "table_points|table_terms"),
+        ("table: error against the exact pullback · build [s]", "table_error|table_seconds"),
+        ("`field_rel_l2/in_horizon/median` · `/extrapolation/median`",
+         "field_rel_l2/in_horizon/median|field_rel_l2/extrapolation/median"),
+        ("`rollout_seconds_per_trajectory` · with decoding", "rollout_seconds_per_trajectory|fields_seconds_per_trajectory"),
     )),
     "elastic-oracle": Spec("study", "python -m experiments.elastic_diagnostics --oracle --degree 1 2 3",
                            raw="outputs/elastic_diagnostics/oracle", csv="oracle.json"),
