@@ -140,6 +140,24 @@ def test_a_table_of_four_codes_starts_with_fewer_nodes_per_axis_so_that_one_axis
     assert start_nodes(16, 4, 1 << 20) == 16 and start_nodes(3, 4, 65536) == 3
 
 
+def test_a_table_that_misses_its_tolerance_is_cut_only_as_far_as_its_error_allows(monkeypatch):
+    """A table above its tolerance (here out of reach) is still read through fewer terms where they cost its error at
+    most TABLE_TRIM_SLACK more than the whole table's."""
+    from lnf import tabulated
+
+    _, exact, _ = _nonlinear_setup()
+
+    def table() -> TabulatedDynamics:
+        return TabulatedDynamics(exact, [-3.0, -0.05], [3.0, 0.05], tol=1e-300, min_nodes=8, max_nodes=16)
+
+    cut = table().info
+    monkeypatch.setattr(tabulated, "TABLE_TRIM_SHARES", ())  # read whole
+    whole = table().info
+    assert whole["table_terms_shape"] == whole["table_shape"] == cut["table_shape"] == [16, 8]
+    assert cut["table_terms"] < whole["table_terms"]
+    assert cut["table_error"] <= (1 + tabulated.TABLE_TRIM_SLACK) * whole["table_error"]
+
+
 def test_a_slow_table_build_logs_each_round(monkeypatch, caplog):
     """A build past TABLE_LOG_SECONDS says each round's nodes and error (the soft body's d = 4 table takes minutes);
     a quick one says nothing."""
