@@ -75,6 +75,15 @@ SCENE_METRICS = (
     ("epochs run (of the budget)", "epochs_run|max_epochs"),
 )
 
+# a table of the reduced dynamics and the rollouts through it (lnf.evaluate's metrics)
+TABLE_METRICS = (
+    ("table: nodes built · terms read", "table_points|table_terms"),
+    ("table: error against the exact pullback · build [s]", "table_error|table_seconds"),
+    ("`field_rel_l2/in_horizon/median` · `/extrapolation/median`",
+     "field_rel_l2/in_horizon/median|field_rel_l2/extrapolation/median"),
+    ("`rollout_seconds_per_trajectory` · with decoding", "rollout_seconds_per_trajectory|fields_seconds_per_trajectory"),
+)
+
 # experiments/scenes.py's results.json on a body with an expensive reference (speedup) and an added damping (damped)
 FEM_SCENE_MEASUREMENTS = (
     ("test trajectories · training horizon [s] · FEM state entries (u and v of every node, the load)",
@@ -247,15 +256,10 @@ SPECS: dict[str, Spec] = {
         ("rollouts, decoding and checks [s] (`evaluation_seconds`: without start-up, ground truth and figures)",
          "evaluation_seconds"),
     )),
-    # the soft body's d = 3 table refined per axis (since 43afd1d), on the model-size search's checkpoint, no closure
-    "soft_body_d3_table": Spec("metrics", "python -m lnf.evaluate ckpt_path=<the d = 3 checkpoint of "
-                               "model_size-soft_body-d34> figures=0 threads=1", metrics=(
-        ("table: nodes built · terms read", "table_points|table_terms"),
-        ("table: error against the exact pullback · build [s]", "table_error|table_seconds"),
-        ("`field_rel_l2/in_horizon/median` · `/extrapolation/median`",
-         "field_rel_l2/in_horizon/median|field_rel_l2/extrapolation/median"),
-        ("`rollout_seconds_per_trajectory` · with decoding", "rollout_seconds_per_trajectory|fields_seconds_per_trajectory"),
-    )),
+    # the soft body's d = 3, 4 tables refined per axis (since 43afd1d), on the model-size search's checkpoints, no closure
+    **{f"soft_body_d{d}_table": Spec("metrics", f"python -m lnf.evaluate ckpt_path=<the d = {d} checkpoint of "
+                                     "model_size-soft_body-d34> figures=0 threads=1", metrics=TABLE_METRICS)
+       for d in (3, 4)},
     "elastic-oracle": Spec("study", "python -m experiments.elastic_diagnostics --oracle --degree 1 2 3",
                            raw="outputs/elastic_diagnostics/oracle", csv="oracle.json"),
     "elastic-release": Spec("study", "python -m experiments.elastic_diagnostics --content",
