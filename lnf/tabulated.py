@@ -39,14 +39,14 @@ log = logging.getLogger(__name__)
 TABLE_MARGIN = 0.25
 #: a table whose relative error at its check points stays above this (its nodes capped by dynamics.max_nodes or
 #: dynamics.max_table_points) is not used: the model rolls out on the exact pullback (LagrangianNeuralField.dynamics).
-#: The soft body's d = 4 table (16⁴ nodes, the most 65 536 points allow) was 11 % off and 13 of 16 test rollouts
+#: The soft body's d = 4 table (16⁴ nodes, when every axis grew alike) was 11 % off and 13 of 16 test rollouts
 #: diverged at step 2; the d = 3, 4 tables of the cantilevers (1.4e-5 … 1.5e-3) roll out as the exact pullback does
 TABLE_MAX_ERROR = 1e-2
 #: a table still more than TABLE_MAX_ERROR off at dynamics.max_table_points may grow to this many times as many
-#: nodes (within dynamics.max_nodes) before the model leaves it: the soft body's d = 3 table, 1.7 % off at 32³, is
-#: 1.0e-3 off at 64³ (built in 4.7 min here), where the exact pullback costs a jet per step
+#: nodes (within dynamics.max_nodes) before the model leaves it, where the exact pullback costs a jet per step (when
+#: every axis grew alike, the soft body's d = 3 table was 1.7 % off at 32³ and 1.0e-3 off at 64³)
 TABLE_ROUGH_GROWTH = 4
-#: from this d on a table is evaluated as one matrix product on the tensor-product basis (rows × nodes^d, at most
+#: from this d on a table is evaluated as one matrix product on the tensor-product basis (rows × Π_i n_i, at most
 #: TENSOR_BASIS_ELEMENTS at a time) instead of axis by axis: at d = 3 (32³ nodes, 160 rows) 3× faster on one CPU
 #: thread, at d = 4 (16⁴) 5× (python -m experiments.bench_table); at d = 2 not steadily faster: it keeps its rounding
 TENSOR_BASIS_FROM_DIM, TENSOR_BASIS_ELEMENTS = 3, 1 << 22
