@@ -176,7 +176,7 @@ SPECS: dict[str, Spec] = {
         "study", "python -m experiments.closure_ablation --ckpt <the d = 4 checkpoint of model_size-elastic_actuated-d34> "
         "--degree 4 --threads 1 --out outputs/studies/closure_ablation-elastic_actuated-d4",
         raw="outputs/studies/closure_ablation-elastic_actuated-d4", table=0, csv="closure.json"),
-    # the soft body at d = 3, 4 (tables refined per axis since 43afd1d: 128 × 8 × 8 nodes at d = 3, 128 × 8³ at d = 4)
+    # the soft body at d = 3, 4 (tables refined per axis since 43afd1d: 128 × 16 × 16 nodes at d = 3, 128 × 8³ at d = 4)
     **{f"closure_ablation-soft_body-d{d}": Spec(
         "study", f"python -m experiments.closure_ablation --ckpt <the d = {d} checkpoint of model_size-soft_body-d34> "
         f"--degree 4 --threads 1 --out outputs/studies/closure_ablation-soft_body-d{d}",

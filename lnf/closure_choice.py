@@ -147,8 +147,8 @@ def shoot_closure(model: Any, codes: torch.Tensor, velocities: torch.Tensor, dt:
     :data:`SHOOTING_TABLE_NODES` nodes), under the evaluation's `integrator`,
     with a budget of `iterations_per_term` × (m + 1)² coefficient vectors rolled out in each stage, m = min(terms,
     :data:`SHOOTING_BUDGET_TERMS`), or sooner once it stalls (:data:`SHOOTING_STALL`): an iteration of
-    Levenberg–Marquardt rolls out terms + 1 vectors for its finite-difference Jacobian (one batched rollout: each block of rows its own coefficients) and one for its trial,
-    so up to that many terms it has `iterations_per_term` × (terms + 1) iterations, and beyond them fewer: the
+    Levenberg–Marquardt rolls out terms + 1 vectors for its finite-difference Jacobian (one batched rollout: each
+    block of rows its own coefficients) and one for its trial, so up to that many terms it has `iterations_per_term` × (terms + 1) iterations, and beyond them fewer: the
     stage's cost stops growing with the terms. The vectors are counted here, not by scipy (since scipy 1.16 its
     `max_nfev` leaves the Jacobian's evaluations out); a stage stops before it would pass its budget and keeps the
     coefficients with the smallest gap it rolled out.

@@ -107,8 +107,8 @@ class ChebyshevTable:
     Built from values `f_nodes` (n_1, …, n_d, c) at Chebyshev points of the first kind
     (``numpy.polynomial.chebyshev.chebpts1``), n_i on axis i (``nodes``; an axis along which f varies slowly needs
     fewer); :meth:`__call__` returns (B, 1 + d, c): the values and ∂f/∂q_i (i = 1…d) of the interpolating
-    polynomial at q (B, d); (B, 1, c), the values only, when built with ``derivatives=False``. ``keep_float64=False`` keeps no
-    float64 copy of the coefficients.
+    polynomial at q (B, d); (B, 1, c), the values only, when built with ``derivatives=False``.
+    ``keep_float64=False`` keeps no float64 copy of the coefficients.
     """
 
     def __init__(self, f_nodes: np.ndarray, low: Sequence[float], high: Sequence[float],
@@ -137,10 +137,9 @@ class ChebyshevTable:
         self.n, self.size = max(self.nodes), math.prod(self.nodes)
         blocks = [coef]
         for axis in range(d if derivatives else 0):  # ∂/∂q_axis = chebder along that axis × dx/dq
-            der = C.chebder(coef, axis=axis) * (2.0 / (hi[axis] - lo[axis])) if self.nodes[axis] > 1 else \
-                np.zeros_like(coef[tuple(slice(0, 0) if a == axis else slice(None) for a in range(coef.ndim))])
+            der = C.chebder(coef, axis=axis) * (2.0 / (hi[axis] - lo[axis]))  # n_i − 1 terms (1, zero, for n_i = 1)
             pad = [(0, 0)] * coef.ndim
-            pad[axis] = (0, 1)
+            pad[axis] = (0, self.nodes[axis] - der.shape[axis])
             blocks.append(np.pad(der, pad))
         packed = np.stack(blocks, axis=-2)  # (n_1, …, n_d, 1 + d, c), or (n_1, …, n_d, 1, c) without derivatives
         self.coef = torch.as_tensor(packed, dtype=dtype, device=device)
@@ -160,17 +159,23 @@ class ChebyshevTable:
         table._set_coefficients(cut, *self._build)
         return table
 
-    def axis_tails(self, weights: Optional[Tensor] = None) -> list[float]:
-        """How well each axis is resolved: the largest |coefficient| × `weights` (1 + d, c) (default: 1 / the
-        largest of each column) in the upper half of that axis's degrees (k_i ≥ n_i / 2), over the values and
-        derivatives. A smooth f's coefficients decay with the degree, so an axis whose tail is far below the
-        others' gains nothing from more nodes."""
+    def axis_profiles(self, weights: Optional[Tensor] = None) -> list[Tensor]:
+        """Per axis i, (n_i,): the largest |coefficient| × `weights` (1 + d, c) at each degree k_i of that axis, over
+        the other axes' degrees, the values and the derivatives (default weights: 1 / the largest of each column). A
+        smooth f's coefficients decay with the degree: where an axis's profile ends far below its start, more nodes
+        on it gain nothing, and its last degrees can be cut (:meth:`truncated`)."""
         coef = (self.coef64 if self.coef64 is not None else self.coef.double()).abs()
         if weights is None:
             scale = coef.amax(dim=tuple(range(self.d)), keepdim=True)  # per column; a column of round-off: none
             weights = 1.0 / scale.clamp_min(1e-8 * float(scale.max()) + 1e-300)
-        magnitude = (coef * weights.to(coef)).flatten(self.d)
-        return [float(magnitude.narrow(axis, n // 2, n - n // 2).max()) for axis, n in enumerate(self.nodes)]
+        magnitude = (coef * weights.to(coef)).flatten(self.d).amax(-1)  # (n_1, …, n_d)
+        return [magnitude.amax(dim=tuple(a for a in range(self.d) if a != axis)) if self.d > 1 else magnitude
+                for axis in range(self.d)]
+
+    def axis_tails(self, weights: Optional[Tensor] = None) -> list[float]:
+        """How well each axis is resolved: the top of its :meth:`axis_profiles` over the upper half of its degrees
+        (k_i ≥ n_i / 2)."""
+        return [float(profile[len(profile) // 2:].max()) for profile in self.axis_profiles(weights)]
 
     def scaled(self, q: Tensor) -> Tensor:
         """x ∈ [−1, 1]^d inside the box (B, d)."""
@@ -285,7 +290,7 @@ class TabulatedDynamics:
         tol = max(float(tol), 10 * torch.finfo(self.dtype).eps, 100 * torch.finfo(build_dtype).eps)
         check = self._check_points(64 * self.d, build_dtype)
         exact_check = self._exact_channels(check, self.builder)
-        self._error_weights = self._weights(exact_check)
+        weights = self._weights(exact_check)
         nodes, error = [start_nodes(int(min_nodes), self.d, int(max_table_points))] * self.d, math.inf
         while True:
             self.table = ChebyshevTable(self._node_values(nodes), self.low, self.high, self.dtype, self.device)
@@ -294,12 +299,12 @@ class TabulatedDynamics:
                 log.info("table of the reduced dynamics: %s, %.1e off the exact pullback (tol %.0e), %.0f s so far",
                          shape_text(nodes), error, tol, time.perf_counter() - start)
             cap = int(max_table_points) * (TABLE_ROUGH_GROWTH if error > TABLE_MAX_ERROR else 1)
-            grown = [] if error <= tol else self._refined(nodes, int(max_nodes), cap)
+            grown = [] if error <= tol else self._refined(nodes, int(max_nodes), cap, weights)
             if not grown:
                 break
             nodes = grown
         built = list(self.table.nodes)
-        self.table, error = self._trimmed(check, exact_check, error, tol)
+        self.table, error = self._trimmed(check, exact_check, error, tol, weights)
         if self.d == 1 and not (self._last_nodes[..., 0] > 0).all():  # M̃ at the nodes
             raise ValueError(f"M̃ is not positive on the table box {self.low}..{self.high} (φ is not an immersion "
                              "there); use dynamics=lagrangian or a smaller dynamics.margin")
@@ -317,19 +322,18 @@ class TabulatedDynamics:
         if error > tol:
             log.warning(self._roughness_message(error, tol))
 
-    def _trimmed(self, check: Tensor, exact: Tensor, error: float, tol: float) -> tuple[ChebyshevTable, float]:
+    def _trimmed(self, check: Tensor, exact: Tensor, error: float, tol: float,
+                 weights: Tensor) -> tuple[ChebyshevTable, float]:
         """The table with each axis's series cut after its last coefficient of weight ≥ share × the target
-        max(`tol`, (1 + :data:`TABLE_TRIM_SLACK`) × `error`) (weighted as :meth:`_relative_error` measures), for the
+        max(`tol`, (1 + :data:`TABLE_TRIM_SLACK`) × `error`) (`weights`: as :meth:`_relative_error` measures), for the
         first share of :data:`TABLE_TRIM_SHARES` whose error at the check points stays within the target; else the
         table as built, and its `error`."""
         target = max(tol, (1.0 + TABLE_TRIM_SLACK) * error)
-        weighted = (self.table.coef64.abs() * self._error_weights.to(self.table.coef64)).flatten(self.d).amax(-1)
+        profiles = self.table.axis_profiles(weights)
         for share in TABLE_TRIM_SHARES:
             terms = []
-            for axis in range(self.d):
-                others = tuple(a for a in range(self.d) if a != axis)
-                along = weighted.amax(dim=others) if others else weighted  # (n_axis,)
-                kept = (along >= share * target).nonzero()
+            for profile in profiles:
+                kept = (profile >= share * target).nonzero()
                 terms.append(max(2, int(kept.max()) + 1) if len(kept) else 2)
             if tuple(terms) == self.table.nodes:
                 break
@@ -339,13 +343,13 @@ class TabulatedDynamics:
                 return table, cut_error
         return self.table, error
 
-    def _refined(self, nodes: list[int], max_nodes: int, cap: int) -> list[int]:
+    def _refined(self, nodes: list[int], max_nodes: int, cap: int, weights: Tensor) -> list[int]:
         """The next nodes per axis: doubled on every axis whose coefficient tail (:meth:`ChebyshevTable.axis_tails`)
         is within :data:`TABLE_REFINE_SHARE` of the worst axis's, the worst first, as far as `max_nodes` per axis
         and `cap` nodes in all allow; [] when no axis can grow. Where M̃ and Ṽ vary alike along every axis, all
         double (an isotropic table); the soft body's d = 3 codes span 6.7 along the first axis and 0.02–0.2 along
         the others, where degree 5 is enough: there only the first grows."""
-        tails = self.table.axis_tails(self._error_weights)
+        tails = self.table.axis_tails(weights)
         grown = list(nodes)
         for axis in sorted(range(self.d), key=lambda a: -tails[a]):
             if tails[axis] < TABLE_REFINE_SHARE * max(tails):
