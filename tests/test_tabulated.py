@@ -201,6 +201,31 @@ def test_within_continued_off_box_rows_off_the_box_read_its_edge_without_a_jet()
     assert tab.fallback_rows == 1
 
 
+def test_the_automatic_substeps_read_the_stiffness_of_a_tables_box_without_leaving_it():
+    """box_frequency's grid stands inside the box by its difference stencil: none of its evaluations falls back to
+    the exact pullback (at the edges half of them did: 20 % of the soft body's d = 4 test rollout's rows), and the
+    frequency is the exact pullback's on that grid."""
+    from lnf.integrators.base import box_frequency
+
+    _, exact, _ = _nonlinear_setup()
+    for low, high in (([-0.2, -0.2], [0.2, 0.2]), ([0.3, -0.6], [0.7, -0.5])):  # one box away from 0
+        tab = TabulatedDynamics(exact, low, high, tol=1e-10)
+        q = torch.tensor([[sum(b) / 2 for b in zip(low, high)]], dtype=torch.float64)
+        omega = box_frequency(tab, q, torch.zeros_like(q))
+        assert tab.fallback_rows == 0 and tab.evaluated_rows > 0
+        assert omega == pytest.approx(box_frequency(_Boxed(exact, low, high), q, torch.zeros_like(q)), rel=1e-6)
+
+
+class _Boxed:
+    """The exact pullback with a table's box, for box_frequency."""
+
+    def __init__(self, exact, low, high):
+        self.exact, self.low, self.high = exact, low, high
+
+    def acceleration(self, q, v, t=0.0):
+        return self.exact.acceleration(q, v, t)
+
+
 def test_tabulated_pendulum_rollout_follows_the_exact_one_and_conserves_its_energy(pendulum):
     exact = _pendulum_dynamics(pendulum)
     tab = TabulatedDynamics(exact, [-2.0], [2.0])
