@@ -23,6 +23,7 @@ from lnf.reduced_model import ReducedModel
 from lnf.quadrature import Quadrature, QuadratureRule
 from lnf.divergence import divergence_metrics, divergence_steps, initial_state_causes, substeps_metrics
 from lnf.evaluation_cost import chunked_energy, FRAME_BLOCK_BYTES, decode_batch, frame_block
+from lnf.tabulated import TABLE_OFF_BOX_WARN
 
 log = logging.getLogger("lnf.evaluation")
 
@@ -239,6 +240,8 @@ def evaluate_rollouts(
     if "table_nodes" in table_info:  # share of the rollout's evaluations that left the table's box (exact there)
         table_info["table_fallback_fraction"] = (dynamics.fallback_rows - counts0[0]) / max(
             dynamics.evaluated_rows - counts0[1], 1)
+        if table_info["table_fallback_fraction"] > TABLE_OFF_BOX_WARN:
+            log.warning("%s: %s", label, dynamics.off_box_text(traj.q, table_info["table_fallback_fraction"]))
 
     if weights is None:
         weights = np.full(points.shape[0], 1.0 / points.shape[0])

@@ -37,6 +37,8 @@ log = logging.getLogger(__name__)
 
 #: the table's box: the training codes' range widened by this fraction of its span on each side (``dynamics.margin``)
 TABLE_MARGIN = 0.25
+#: a rollout that reads more than this share of its rows off the box (from the exact pullback) says why, and how far
+TABLE_OFF_BOX_WARN = 0.02
 #: a table whose relative error at its check points stays above this (its nodes capped by dynamics.max_nodes or
 #: dynamics.max_table_points) is not used: the model rolls out on the exact pullback (LagrangianNeuralField.dynamics).
 #: The soft body's d = 4 table (16⁴ nodes, when every axis grew alike) was 11 % off and 13 of 16 test rollouts
@@ -388,6 +390,18 @@ class TabulatedDynamics:
             yield
         finally:
             self._continue_off_box = False
+
+    def off_box_text(self, q: Tensor, fraction: float) -> str:
+        """Why a rollout through states q (..., d) read `fraction` of its rows from the exact pullback: how far it
+        ran past the box along each code, and what widens the box."""
+        reach = self.table.scaled(q.reshape(-1, self.d).to(self.table.center)).abs().nan_to_num(0.0).amax(0).tolist()
+        past = ", ".join(f"{r:.2g} along code {i + 1}" for i, r in enumerate(reach) if r > 1.0)
+        where = (f"the rollout's codes reached, in half-widths of the box from its centre, {past}" if past else
+                 "the rollout's recorded codes stayed in the box: its implicit solves' trial states left it")
+        return (f"dynamics=tabulated: {fraction:.0%} of the rollout's evaluations lay off the table's box and were "
+                f"read from the exact pullback (a jet each, slower): {where}. A wider box (dynamics.margin, a "
+                f"fraction of the training codes' span added on each side) holds them at the cost of a larger table; "
+                f"codes far past the training range are where the embedding was not trained")
 
     def __repr__(self) -> str:
         return (f"TabulatedDynamics(d={self.d}, {shape_text(self.table.nodes, 'terms')} of "

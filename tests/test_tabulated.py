@@ -226,6 +226,16 @@ class _Boxed:
         return self.exact.acceleration(q, v, t)
 
 
+def test_a_rollout_read_off_the_box_is_told_how_far_along_which_code():
+    _, exact, _ = _nonlinear_setup()
+    tab = TabulatedDynamics(exact, [-0.2, -0.2], [0.2, 0.2])
+    q = torch.tensor([[[0.1, 0.0], [0.15, 0.5]], [[-0.1, -0.3], [float("nan"), float("nan")]]], dtype=torch.float64)
+    text = tab.off_box_text(q, 0.3)
+    assert "30% of the rollout's evaluations" in text and "2.5 along code 2" in text and "code 1" not in text
+    assert "dynamics.margin" in text
+    assert "recorded codes stayed in the box" in tab.off_box_text(q[:1, :1], 0.05)
+
+
 def test_tabulated_pendulum_rollout_follows_the_exact_one_and_conserves_its_energy(pendulum):
     exact = _pendulum_dynamics(pendulum)
     tab = TabulatedDynamics(exact, [-2.0], [2.0])

@@ -14,6 +14,7 @@ import lnf
 from helpers import METRICS_ONLY, TINY, compose_config
 from lnf.evaluate import evaluate
 from lnf.integrators import RK4, get_integrator
+from lnf.tabulated import TABLE_OFF_BOX_WARN
 from lnf.train import train
 
 pytestmark = pytest.mark.slow
@@ -306,7 +307,7 @@ def test_every_scene_experiment_trains_and_evaluates(experiment, tmp_path):
     assert model.scene.name == experiment.split("_actuated")[0] and model.latent_dim == cfg.model.latent_dim
 
 
-def test_evaluate_with_tabulated_dynamics_matches_the_exact_pullback(trained, tmp_path):
+def test_evaluate_with_tabulated_dynamics_matches_the_exact_pullback(trained, tmp_path, caplog):
     """dynamics=tabulated at evaluation: the checkpoint's training-code range boxes the table; same metrics."""
     _, cfg, _ = trained
     ckpt = Path(cfg.paths.output_dir) / "checkpoints" / "last.ckpt"
@@ -315,6 +316,10 @@ def test_evaluate_with_tabulated_dynamics_matches_the_exact_pullback(trained, tm
     exact = evaluate(compose_config("evaluate", [*common, "dynamics=lagrangian"], tmp_path))
     table = evaluate(compose_config("evaluate", [*common, "dynamics=tabulated"], tmp_path))
     assert table["table_nodes"] >= 16 and table["table_error"] < 1e-5 and 0 <= table["table_fallback_fraction"] <= 1
+    assert ("lay off the table's box" in caplog.text) == (table["table_fallback_fraction"] > TABLE_OFF_BOX_WARN)
+    # a box no wider than the training codes: the test rollouts leave it (36 %), and the log says how far
+    tight = evaluate(compose_config("evaluate", [*common, "dynamics=tabulated", "dynamics.margin=0"], tmp_path))
+    assert tight["table_fallback_fraction"] > TABLE_OFF_BOX_WARN and "lay off the table's box" in caplog.text
     if np.isfinite(exact["field_rel_l2/all/median"]):
         assert table["field_rel_l2/all/median"] == pytest.approx(exact["field_rel_l2/all/median"], rel=1e-3, abs=1e-4)
     with pytest.raises(ValueError, match="can switch between"):
