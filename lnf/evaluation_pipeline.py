@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Optional
 
@@ -22,6 +22,7 @@ from lnf.decoding_table import check_decoding
 from lnf.error_budget import read_error_budget
 from lnf.evaluation import RolloutEvaluation, evaluate_rollouts, long_horizon_energy
 from lnf.integrators import get_integrator
+from lnf.metrics import time_windows
 from lnf.quadrature import grid_shape_of
 from lnf.reduced_model import ReducedModel
 from lnf.tempfiles import write_json_atomic
@@ -117,6 +118,21 @@ class EvaluationData:
                    controls=None if split.controls is None else split.controls[:n],
                    weights=None if split.weights is None else
                    (split.weights if subset is None else split.weights[subset]))
+
+    def within_horizon(self) -> "EvaluationData":
+        """The same trajectories cut to the samples before `train_horizon`: the in-horizon window's metrics are the
+        same and the rollouts half as long where the data run twice the horizon (a choice read off in-horizon errors,
+        as the closure's, rolls out no further)."""
+        keep = int(np.count_nonzero(time_windows(np.asarray(self.times), self.train_horizon)["in_horizon"]))
+        if keep < 2 or keep == len(self.times):
+            return self
+
+        def cut(a: Optional[np.ndarray]) -> Optional[np.ndarray]:
+            return None if a is None else a[:, :keep]
+
+        return replace(self, states=cut(self.states), times=self.times[:keep], true_fields=cut(self.true_fields),
+                       true_velocities=cut(self.true_velocities),
+                       true_energies=None if self.true_energies is None else tuple(cut(e) for e in self.true_energies))
 
 
 @dataclass

@@ -326,6 +326,27 @@ def test_evaluate_with_tabulated_dynamics_matches_the_exact_pullback(trained, tm
         evaluate(compose_config("evaluate", [*common, "dynamics=latent_mlp"], tmp_path))
 
 
+def test_a_choice_read_off_in_horizon_errors_rolls_out_no_further_with_the_same_errors(trained):
+    """EvaluationData.within_horizon (the closure's validation rollouts): the samples before the training horizon
+    only, and the same in-horizon errors and divergence as the whole rollout's."""
+    from experiments.scenes import snapshot_data_of
+    from lnf.evaluation_pipeline import EvaluationData, EvaluationSpec, evaluate_model
+
+    _, cfg, _ = trained
+    model = lnf.load(Path(cfg.paths.output_dir) / "checkpoints" / "last.ckpt")
+    whole = EvaluationData.of_split(snapshot_data_of(model).split("val"), model.scene, 2)
+    cut = whole.within_horizon()
+    assert len(cut.times) == int(np.sum(whole.times < whole.train_horizon)) < len(whole.times)
+    assert cut.states.shape[1] == cut.true_fields.shape[1] == len(cut.times) and cut.train_horizon == whole.train_horizon
+    assert cut.within_horizon() is cut
+    spec = EvaluationSpec(integrator="rk4", figures=0, long_steps=0)
+    with torch.no_grad():
+        a, b = (evaluate_model(model, data, spec).metrics for data in (whole, cut))
+    assert "field_rel_l2/extrapolation/median" in a and "field_rel_l2/extrapolation/median" not in b
+    for key in ("field_rel_l2/in_horizon/median", "field_rel_l2/in_horizon/max", "diverged_count"):
+        assert b[key] == pytest.approx(a[key], rel=1e-6), key
+
+
 @pytest.mark.parametrize("target, match", [
     ("lnf.scenes.LiftedPendulm", r"scene\._target_=lnf\.scenes\.LiftedPendulm: module 'lnf\.scenes' .* has no "
                                  r"'LiftedPendulm'.*Did you mean 'lnf\.scenes\.LiftedPendulum'"),
