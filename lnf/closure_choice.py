@@ -26,12 +26,13 @@ log = logging.getLogger("lnf.closure")
 #: the closure's candidate regularizers (ridge λ, relative to the normal matrix's mean diagonal)
 CLOSURE_REGULARIZERS = (1e-8, 1e-5, 1e-2)
 CLOSURE_VAL_TRAJECTORIES = 8
-#: the training trajectories (evenly spaced) whose rollouts the shooting refinement fits: 16 on a table of at most
-#: SHOOTING_TABLE_NODES nodes (the soft body's d = 2 table has 128², the cantilevers' 64²), 4 where a row costs more:
-#: the exact pullback (a jet per step) or a larger table (32³ or 16⁴ nodes at d = 3, 4: an evaluation is a product
-#: with all of them, tens of milliseconds a row and step); and its Levenberg–Marquardt iterations per term in each
-#: stage by default (``evaluation.closure_shooting_iterations``)
-SHOOTING_TRAJECTORIES, SHOOTING_TRAJECTORIES_EXACT, SHOOTING_TABLE_NODES = 16, 4, 128 ** 2
+#: the training trajectories (evenly spaced) whose rollouts the shooting refinement fits: 16 on a table whose
+#: evaluation costs at most SHOOTING_TABLE_WORK multiply-adds a row (its coefficients: terms × outputs; a 128² table
+#: of M̃ and Ṽ at d = 2, the soft body's, is 196 608; the cantilevers' 64² a quarter), 4 where a row costs more: the
+#: exact pullback (a jet per step) or a larger table (the soft body's d = 4 one, read as 12 288 terms of 55 outputs:
+#: 676 000; its first shooting vector took 958 s on 16 trajectories); and its Levenberg–Marquardt iterations per
+#: term in each stage by default (``evaluation.closure_shooting_iterations``)
+SHOOTING_TRAJECTORIES, SHOOTING_TRAJECTORIES_EXACT, SHOOTING_TABLE_WORK = 16, 4, 128 ** 2 * 3 * 4
 SHOOTING_ITERATIONS_PER_TERM = EvaluationSpec.closure_shooting_iterations
 #: a stage's budget counts at most this many terms (d = 2 at degree 4): with more (34 at d = 3, 69 at d = 4, where
 #: model.closure_max_terms is lifted) it stays
@@ -143,8 +144,8 @@ def shoot_closure(model: Any, codes: torch.Tensor, velocities: torch.Tensor, dt:
     """Refine the model's closure coefficients in place by shooting: Levenberg–Marquardt (scipy) on the gap between
     the closed dynamics' rollouts from encoded training states (q̃, q̃̇) and the encoded codes `codes` (n, T, d, every
     `dt` [s] from `t0`), in units of the codes' spread, on :data:`SHOOTING_TRAJECTORIES` evenly spaced trajectories
-    (:data:`SHOOTING_TRAJECTORIES_EXACT` where the dynamics are not a table or a table of more than
-    :data:`SHOOTING_TABLE_NODES` nodes), under the evaluation's `integrator`,
+    (:data:`SHOOTING_TRAJECTORIES_EXACT` where the dynamics are not a table or a table that costs more than
+    :data:`SHOOTING_TABLE_WORK` multiply-adds a row), under the evaluation's `integrator`,
     with a budget of `iterations_per_term` × (m + 1)² coefficient vectors rolled out in each stage, m = min(terms,
     :data:`SHOOTING_BUDGET_TERMS`), or sooner once it stalls (:data:`SHOOTING_STALL`): an iteration of
     Levenberg–Marquardt rolls out terms + 1 vectors for its finite-difference Jacobian (one batched rollout: each
@@ -168,7 +169,7 @@ def shoot_closure(model: Any, codes: torch.Tensor, velocities: torch.Tensor, dt:
     base = model.dynamics()
     dynamics = ClosedDynamics(base.base if isinstance(base, ClosedDynamics) else base, closure)
     table = getattr(dynamics.base, "table", None)  # TabulatedDynamics: its Chebyshev table
-    cheap = getattr(dynamics, "small_tensors", False) and (table is None or table.size <= SHOOTING_TABLE_NODES)
+    cheap = getattr(dynamics, "small_tensors", False) and (table is None or table.coef.numel() <= SHOOTING_TABLE_WORK)
     count = SHOOTING_TRAJECTORIES if cheap else SHOOTING_TRAJECTORIES_EXACT
     rows = np.unique(np.linspace(0, codes.shape[0] - 1, min(count, codes.shape[0])).round().astype(int))
     q, v = model.as_model(codes[rows]), model.as_model(velocities[rows])
