@@ -56,9 +56,10 @@ def fit_closure(model: Any, datamodule: Any, spec: Any) -> dict[str, float]:
     """Fit the model's potential closure ΔṼ (lnf/closure.py) after training: the pulled-back equations' residual
     along the encoded training trajectories, a ridge fit per regularizer of :data:`CLOSURE_REGULARIZERS`, and the
     one (or none: the pure pullback) whose rollouts of the first validation trajectories have the smallest field
-    error within the training horizon (rolled out that far only: :meth:`EvaluationData.within_horizon`). The residual fit with the best validation error (chosen or not) is then
-    refined by shooting (:func:`shoot_closure`, `spec.closure_shooting_iterations` iterations per term in each
-    stage; none at 0) and the refinement is a candidate of its own. `spec`: the test's EvaluationSpec (its
+    error within the training horizon (rolled out that far only: :meth:`EvaluationData.within_horizon`). The
+    residual fit with the best validation error (chosen or not) is then refined by shooting (:func:`shoot_closure`,
+    `spec.closure_shooting_iterations` iterations per term in each stage; none at 0) and the refinement is a
+    candidate of its own. `spec`: the test's EvaluationSpec (its
     integrator, decoding and shooting budget)."""
     start = time.perf_counter()
     closure = model.closure

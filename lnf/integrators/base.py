@@ -125,8 +125,8 @@ def box_frequency(dynamics: Dynamics, q: Tensor, v: Tensor, t: float = 0.0) -> f
     d = len(low)
     per_axis = max(2, min(129, int(BOX_FREQUENCY_POINTS ** (1.0 / d))))
     # the grid stands two difference steps inside the box, so that the stencil of stiffness_eigenvalues stays in it:
-    # at the edges half its evaluations left the box, and a table reads those from the exact pullback (the soft
-    # body's d = 4 table: 20 % of a test rollout's rows, most of its cost)
+    # at the edges some of its evaluations left the box, and a table reads those from the exact pullback, a jet each
+    # (at d = 4: 1 000 of the grid's 5 000 rows)
     ends = torch.tensor([list(low), list(high)], dtype=q.dtype, device=q.device)  # (2, d)
     inset = 2.0 * difference_steps(ends)
     ends = torch.where(ends[1] - ends[0] > inset.sum(0), ends + inset * torch.tensor([[1.0], [-1.0]]).to(ends),
