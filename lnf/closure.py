@@ -53,6 +53,20 @@ def capped_degree(latent_dim: int, degree: int, max_terms: Optional[int]) -> int
     return p
 
 
+#: the least span a code is given, as a fraction of the largest code's (:func:`floored_spans`), where the codes share one
+#: unit (POD coordinates: :attr:`lnf.reduced_model.ReducedModel.code_span_floor`): a closure fitted so is a candidate
+#: beside one on each code's own span (lnf/closure_choice.py), and the shooting's guard measures by these spans. The
+#: soft body's 3rd and 4th POD codes span 0.3 % of its 1st's (the cantilever's 1.0 and 0.8 %): on its own span a
+#: quadratic term in such a code is a stiffness θ/span²; and at d = 4 the soft body's pure pullback carries its 4th
+#: code up to 4.1 half-widths off its range, a small change of the field, where a guard of its own span ended the trials
+CODE_SPAN_FLOOR = 0.1
+
+
+def floored_spans(span: Tensor, floor: float) -> Tensor:
+    """Each code's `span` (d,), raised to at least `floor` × the largest (0: unchanged)."""
+    return torch.maximum(span, float(floor) * span.max()) if floor > 0 else span
+
+
 class PotentialClosure(nn.Module):
     """ΔṼ(q̃) = Σ_p θ_p Π_i x_i^{E_pi}, x = (q̃ − center)/scale, for a d-dimensional code; all zeros until fitted.
 
@@ -156,16 +170,17 @@ class PotentialClosure(nn.Module):
             grad = grad.index_add(0, rows, (hess @ g[:, :, None])[..., 0] * (g == 0))
         return self._guarded(q, grad / self.scale.to(x))
 
-    def set_guard(self, margin: Optional[float]) -> None:
+    def set_guard(self, margin: Optional[float], span_floor: float = 0.0) -> None:
         """While set, the closure's force (:meth:`gradient`) is NaN at codes beyond the fitted range widened by
-        `margin` of its span on each side: a rollout there ends as diverged, row by row (while the closure is refined
-        by shooting, whose search would otherwise pay for trials that crawl off the codes, e.g. stiff implicit solves
-        of the exact pullback). `margin` None: no guard."""
+        `margin` of its span on each side (each code's span at least `span_floor` of the largest:
+        :func:`floored_spans`): a rollout there ends as diverged, row by row (while the closure is refined by
+        shooting, whose search would otherwise pay for trials that crawl off the codes, e.g. stiff implicit solves of
+        the exact pullback). `margin` None: no guard."""
         if margin is None or self._fitted_range is None:
             self._guard = None
             return
         low, high = self._fitted_range
-        pad = float(margin) * (high - low)
+        pad = float(margin) * floored_spans(high - low, span_floor)
         self._guard = (low - pad, high + pad)
 
     def _guarded(self, q: Tensor, force: Tensor) -> Tensor:
@@ -175,13 +190,13 @@ class PotentialClosure(nn.Module):
         outside = ((q < low) | (q > high)).any(-1, keepdim=True)
         return torch.where(outside, torch.full_like(force, float("nan")), force)
 
-    def fit(self, codes: Tensor, residual: Tensor, regularizer: float) -> float:
+    def fit(self, codes: Tensor, residual: Tensor, regularizer: float, span_floor: float = 0.0) -> float:
         """Fit ∇ΔṼ(q̃) ≈ −r by ridge least squares (λ × the mean diagonal of the normal matrix); codes and residuals
-        (B, d). Sets center and scale from the codes (their mean and largest deviation). Returns the relative misfit
-        ‖∇ΔṼ + r‖ / ‖r‖."""
+        (B, d). Sets center and scale from the codes (their mean and largest deviation, each at least `span_floor` of
+        the largest: :func:`floored_spans`). Returns the relative misfit ‖∇ΔṼ + r‖ / ‖r‖."""
         q, r = codes.detach().double().reshape(-1, codes.shape[-1]), residual.detach().double().reshape(-1, codes.shape[-1])
         self.center.copy_(q.mean(0))
-        self.scale.copy_((q - q.mean(0)).abs().amax(0).clamp_min(1e-6))
+        self.scale.copy_(floored_spans((q - q.mean(0)).abs().amax(0), span_floor).clamp_min(1e-6))
         self._fitted_range = (q.amin(0), q.amax(0))
         A = self.basis_gradients(q).reshape(-1, len(self.coef))  # rows (b, i), columns p
         y = -r.reshape(-1)

@@ -54,7 +54,8 @@ SHOOTING_LOG_SECONDS = 60.0
 
 def fit_closure(model: Any, datamodule: Any, spec: Any) -> dict[str, float]:
     """Fit the model's potential closure ΔṼ (lnf/closure.py) after training: the pulled-back equations' residual
-    along the encoded training trajectories, a ridge fit per regularizer of :data:`CLOSURE_REGULARIZERS`, and the
+    along the encoded training trajectories, a ridge fit per regularizer of :data:`CLOSURE_REGULARIZERS` (and, where
+    the model's codes share one unit, per code scale: each code's own span, or floored at its `code_span_floor`), and the
     one (or none: the pure pullback) whose rollouts of the first validation trajectories have the smallest field
     error within the training horizon (rolled out that far only: :meth:`EvaluationData.within_horizon`). The
     residual fit with the best validation error (chosen or not) is then refined by shooting (:func:`shoot_closure`,
@@ -76,7 +77,6 @@ def fit_closure(model: Any, datamodule: Any, spec: Any) -> dict[str, float]:
 
     closure.reset()
     best = (val_error(), 0.0, 0.0)  # (error, λ, misfit); λ = 0: none
-    chosen = None  # the coefficients of the best candidate, once one beats the pure pullback
     pullback_error = best[0]
     if getattr(model, "latent_dynamics", None) is not None:  # the black box's rollouts never read a closure
         log.info("potential closure: none (%s rolls out learned latent dynamics)", type(model).__name__)
@@ -88,47 +88,63 @@ def fit_closure(model: Any, datamodule: Any, spec: Any) -> dict[str, float]:
         q, v = latent_trajectories(model, points, values, velocities)
         codes, residual = equation_residual(model.lagrangian_dynamics(), q, v, datamodule.dt,
                                             float(train.times[0]), controls)
-    start_from = (math.inf, 0.0, 0.0, None)  # (error, λ, misfit, coefficients) of the best residual fit, chosen or not
+    # candidates: each regularizer with each code scale the model allows (each code's own span, and where the codes
+    # share one unit also its floor, CODE_SPAN_FLOOR of the largest: lnf/closure.py); a candidate is (validation
+    # error, λ, misfit, span floor, coefficients); its scale is refitted from (λ, floor) in milliseconds when needed
+    start_from: tuple = (math.inf, 0.0, 0.0, 0.0, None)  # the best residual fit, chosen or not
+    chosen: tuple = (*best, 0.0, None)  # the best candidate; coefficients None: the pure pullback
     shot = False
-    for lam in CLOSURE_REGULARIZERS:
-        misfit = closure.fit(codes, residual, lam)
-        err = val_error()
-        log.info("closure λ = %.0e: misfit %.3f of the residual, validation field error %.4g in the horizon",
-                 lam, misfit, err)
-        if err < best[0]:
-            best, chosen = (err, lam, misfit), closure.coef.clone()
-        if start_from[3] is None or err < start_from[0]:
-            start_from = (err, lam, misfit, closure.coef.clone())
+    for floor in sorted({0.0, float(getattr(model, "code_span_floor", 0.0))}):
+        for lam in CLOSURE_REGULARIZERS:
+            misfit = closure.fit(codes, residual, lam, floor)
+            err = val_error()
+            log.info("closure λ = %.0e%s: misfit %.3f of the residual, validation field error %.4g in the horizon",
+                     lam, f", codes' spans floored at {floor:g} of the largest" if floor else "", misfit, err)
+            candidate = (err, lam, misfit, floor, closure.coef.clone())
+            if err < chosen[0]:
+                chosen = candidate
+            if start_from[4] is None or err < start_from[0]:
+                start_from = candidate
+
+    def restore(candidate: tuple) -> None:
+        closure.fit(codes, residual, candidate[1], candidate[3])  # its centre and scale
+        closure.coef.copy_(candidate[4])
+
     iterations = int(getattr(spec, "closure_shooting_iterations", SHOOTING_ITERATIONS_PER_TERM))
     if iterations > 0:
         # shooting starts from a residual fit even where the pure pullback won: from zero the search stalls in a
         # local minimum of the phase (soft body: misfit 0.051 → 0.051; from the residual fit 0.074 → 0.012; at
         # d = 2, multiple shooting from zero 0.047 → 0.047, from the residual fit 4.17 → 0.028)
-        closure.coef.copy_(start_from[3])
+        restore(start_from)
         cost = shoot_closure(model, q, v, datamodule.dt, controls, spec.integrator, float(train.times[0]),
                              iterations)
         # unchanged coefficients (the search found nothing better) keep their validation error: no second rollout
         err = val_error() if cost[1] < cost[0] else start_from[0]
         log.info("closure by shooting from λ = %.0e: training-window misfit %.3g → %.3g of the codes' spread, "
                  "validation field error %.4g in the horizon", start_from[1], *cost, err)
-        if err < best[0]:
-            best, chosen, shot = (err, start_from[1], start_from[2]), closure.coef.clone(), True
+        if err < chosen[0]:
+            chosen, shot = (err, *start_from[1:4], closure.coef.clone()), True
     else:
         log.info("closure shooting: none (closure_shooting_iterations = 0)")
     closure.reset()
-    if chosen is not None:  # every fit has the same centre and scale (the codes'): the chosen one's coefficients suffice
-        closure.coef.copy_(chosen)
+    if chosen[4] is not None:
+        restore(chosen)
+    best = chosen[:3]
     seconds = time.perf_counter() - start
     log.info("potential closure: %s (validation field error %.4g in the horizon, the pure pullback's %.4g), %.1f s",
-             f"λ = {best[1]:.0e}{', refined by shooting' if shot else ''}, {len(closure.coef)} terms" if best[1] > 0
+             f"λ = {best[1]:.0e}{', refined by shooting' if shot else ''}, {len(closure.coef)} terms"
+             f"{f', spans floored at {chosen[3]:g}' if chosen[3] else ''}" if best[1] > 0
              else "none (the pure pullback is best)", best[0], pullback_error, seconds)
-    return _record(best, pullback_error, shot, seconds)
+    return _record(best, pullback_error, shot, seconds, chosen[3])
 
 
-def _record(best: tuple[float, float, float], pullback_error: float, shot: bool, seconds: float) -> dict[str, float]:
-    """What metrics.json records of the choice: `best` is (validation error, λ (0: none), residual misfit)."""
+def _record(best: tuple[float, float, float], pullback_error: float, shot: bool, seconds: float,
+            span_floor: float = 0.0) -> dict[str, float]:
+    """What metrics.json records of the choice: `best` is (validation error, λ (0: none), residual misfit);
+    `span_floor` the chosen closure's floor of the codes' spans (0: each code's own)."""
     return {"closure_regularizer": best[1], "closure_val_error": best[0], "closure_pullback_val_error": pullback_error,
-            "closure_misfit": best[2], "closure_shooting": float(shot), "closure_seconds": seconds}
+            "closure_misfit": best[2], "closure_shooting": float(shot), "closure_seconds": seconds,
+            "closure_span_floor": span_floor}
 
 
 class _BudgetSpent(Exception):
@@ -269,7 +285,7 @@ def shoot_closure(model: Any, codes: torch.Tensor, velocities: torch.Tensor, dt:
     # Single shooting alone stalled where the start's rollouts already ran off (soft body, d = 2: 4.17 → 4.17
     # spreads): every row's gap was the flat 10 of a dead trajectory; short windows keep them alive.
     continuation = getattr(dynamics.base, "continued_off_box", contextlib.nullcontext)
-    closure.set_guard(SHOOTING_GUARD_MARGIN)
+    closure.set_guard(SHOOTING_GUARD_MARGIN, getattr(model, "code_span_floor", 0.0))  # a barely moving POD code may drift
     try:
         with continuation():
             candidates = [(whole(theta0), theta0)]

@@ -32,6 +32,9 @@ class SubspacePlusField(nn.Module):
     """φ = linear(q̃, X) + ε residual(q̃, X): a :class:`LinearEmbedding` (the POD subspace) plus a field with the
     :class:`lnf.siren.ModulatedSiren` call and ``jet`` signature, scaled by `residual_scale` ε > 0."""
 
+    #: the modes are scaled alike: a unit of any code is the same size of field (ReducedModel.code_span_floor)
+    commensurate_codes = True
+
     def __init__(self, linear: LinearEmbedding, residual: nn.Module, residual_scale: float = 1.0) -> None:
         super().__init__()
         self.linear, self.residual = linear, residual

@@ -21,7 +21,7 @@ from typing import Any, Callable, Optional
 import torch
 from torch import Tensor, nn
 
-from lnf.closure import ClosedDynamics
+from lnf.closure import CODE_SPAN_FLOOR, ClosedDynamics
 from lnf.dynamics import ReducedDynamics
 from lnf.integrators import Integrator, Trajectory, get_integrator
 from lnf.quadrature import GaussLegendre, Quadrature, QuadratureRule
@@ -173,6 +173,14 @@ class ReducedModel(nn.Module):
         """The dynamics that rollouts integrate (the pulled-back Lagrangian unless a subclass says otherwise), with
         the model's closure once fitted."""
         return self.closed(self.lagrangian_dynamics(quadrature))
+
+    @property
+    def code_span_floor(self) -> float:
+        """The least span a code is measured by, as a fraction of the largest code's (a potential closure's scale and
+        its shooting guard): :data:`lnf.closure.CODE_SPAN_FLOOR` where φ's codes share one unit (its
+        ``commensurate_codes``: POD modes of equal L² norm, so a code's size is the field's), 0 where each code has its
+        own (a SIREN's)."""
+        return CODE_SPAN_FLOOR if getattr(self.field, "commensurate_codes", False) else 0.0
 
     @property
     def has_closure(self) -> bool:

@@ -10,7 +10,8 @@ import pytest
 import torch
 
 from helpers import METRICS_ONLY, ROOT, TINY, compose_config, run_cli
-from lnf.closure import CLOSURE_MAX_TERMS, ClosedDynamics, PotentialClosure, equation_residual, monomial_exponents
+from lnf.closure import (CLOSURE_MAX_TERMS, CODE_SPAN_FLOOR, ClosedDynamics, PotentialClosure, equation_residual,
+                         floored_spans, monomial_exponents)
 from lnf.integrators import get_integrator
 from test_dynamics import _nonlinear_setup, _pendulum_dynamics
 
@@ -99,6 +100,26 @@ def test_while_a_guard_is_set_codes_beyond_the_fitted_range_get_a_nan_force_row_
     assert torch.isfinite(force[0]).all() and torch.isnan(force[1:]).all()
     closure.set_guard(None)
     assert torch.isfinite(closed.hamiltonian_derivatives(codes, codes)[1]).all()
+
+
+def test_a_barely_moving_commensurate_code_is_scaled_and_guarded_by_a_floor_of_the_largest_span():
+    """Where the codes share one unit (POD coordinates), a code that spans 0.3 % of the largest is measured by
+    CODE_SPAN_FLOOR of it: its quadratic term is no stiffness of θ/span², and a drift of a few of its own widths, a
+    small change of the field, does not end a shooting trial. Without the floor each code keeps its own span."""
+    torch.manual_seed(0)
+    q = torch.stack([torch.linspace(-2.0, 2.0, 200), 0.006 * torch.linspace(-1.0, 1.0, 200).flip(0)], 1).double()
+    residual = torch.randn(200, 2, dtype=torch.float64)
+    own, floored = PotentialClosure(2, 2).double(), PotentialClosure(2, 2).double()
+    own.fit(q, residual, 1e-8)
+    floored.fit(q, residual, 1e-8, span_floor=CODE_SPAN_FLOOR)
+    torch.testing.assert_close(own.scale, torch.tensor([2.0, 0.006], dtype=torch.float64))
+    torch.testing.assert_close(floored.scale, torch.tensor([2.0, 2.0 * CODE_SPAN_FLOOR], dtype=torch.float64))
+    torch.testing.assert_close(floored_spans(torch.tensor([4.0, 0.012]), 0.0), torch.tensor([4.0, 0.012]))
+    drift = torch.tensor([[0.0, 0.03]], dtype=torch.float64)  # 5 half-widths of the 2nd code off its centre
+    for floor, alive in ((0.0, False), (CODE_SPAN_FLOOR, True)):
+        own.set_guard(1.0, floor)
+        assert bool(torch.isfinite(own.gradient(drift)).all()) is alive
+        own.set_guard(None)
 
 
 def test_the_closed_pendulum_conserves_its_closed_energy_and_adds_the_closure_force(pendulum):
@@ -517,3 +538,51 @@ def test_the_closure_fit_reads_a_forced_scenes_loads_where_the_file_stores_none(
     with pytest.raises(Stop):
         closure_choice.fit_closure(model, datamodule, Spec())
     torch.testing.assert_close(seen["controls"], torch.as_tensor(loads))
+
+
+@pytest.mark.parametrize("floored_wins", [True, False])
+def test_where_codes_share_one_unit_a_closure_on_floored_spans_is_a_candidate_chosen_on_validation(monkeypatch,
+                                                                                                 floored_wins):
+    """A model whose codes share one unit (POD coordinates) gets each residual fit twice, on each code's own span and
+    on spans floored at its code_span_floor; the validation picks one, and the closure keeps that one's scale."""
+    import dataclasses
+
+    from lnf import closure_choice
+
+    torch.manual_seed(0)
+    t = torch.linspace(0.0, 6.0, 40)
+    codes = torch.stack([torch.sin(t), 0.003 * torch.cos(3 * t)], -1)[None].double()  # (1, T, 2): a barely moving 2nd
+    residual = torch.randn(40, 2, dtype=torch.float64)
+    closure = PotentialClosure(2, 2).double()
+
+    def validation(model, data, spec):  # the floored fits validate better, or worse, than the pure pullback
+        floored = bool(closure.active and closure.scale[1] > 0.01)
+        err = 0.1 if not closure.active else (0.05 if floored == floored_wins else 0.2)
+        return SimpleNamespace(metrics={"field_rel_l2/in_horizon/median": err})
+
+    @dataclasses.dataclass
+    class Spec:
+        split: str = "test"
+        label: str = ""
+        long_steps: int = 0
+        figures: int = 0
+        keep_fields: int = 0
+        progress: bool = False
+        closure_shooting_iterations: int = 0
+
+    monkeypatch.setattr(closure_choice, "evaluate_model", validation)
+    monkeypatch.setattr(closure_choice.EvaluationData, "of_split",
+                        lambda *args: SimpleNamespace(within_horizon=lambda: None))
+    monkeypatch.setattr(closure_choice, "latent_trajectories", lambda *args: (codes, codes))
+    monkeypatch.setattr(closure_choice, "equation_residual", lambda *args: (codes.reshape(-1, 2), residual))
+    model = SimpleNamespace(closure=closure, scene=None, eval=lambda: None, latent_dynamics=None,
+                            lagrangian_dynamics=lambda: None, code_span_floor=CODE_SPAN_FLOOR)
+    train = SimpleNamespace(loads=lambda scene: None, times=[0.0])
+    datamodule = SimpleNamespace(split={"train": train, "val": None}.__getitem__, dt=0.05,
+                                 observations=lambda split: (torch.zeros(1), torch.zeros(1), torch.zeros(1)))
+    record = closure_choice.fit_closure(model, datamodule, Spec())
+    assert record["closure_val_error"] == 0.05 and closure.active
+    assert record["closure_span_floor"] == (CODE_SPAN_FLOOR if floored_wins else 0.0)
+    spans = (codes[0] - codes[0].mean(0)).abs().amax(0)
+    expected = floored_spans(spans, CODE_SPAN_FLOOR) if floored_wins else spans
+    torch.testing.assert_close(closure.scale, expected)

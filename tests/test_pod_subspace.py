@@ -7,6 +7,7 @@ import torch
 
 from lnf.baselines.pod import LinearEmbedding, PODGalerkin
 from lnf.model import LagrangianNeuralField
+from lnf.closure import CODE_SPAN_FLOOR
 from lnf.pod_subspace import SubspacePlusField
 from lnf.scenes.elastic import ElasticCantilever
 from lnf.siren import ModulatedSiren
@@ -68,6 +69,11 @@ def test_an_untrained_model_is_pod_galerkin_and_reduces_to_the_projection():
     codes = torch.cat([model.reduce(torch.as_tensor(points[i]), torch.as_tensor(values[i])) for i in range(4)])
     ratio = float(pod.singular_values[1] / pod.singular_values[0])
     torch.testing.assert_close(codes.std(0), torch.tensor([1.0, ratio], dtype=torch.float64), rtol=0.2, atol=0.0)
+    # so the codes share one unit: a barely moving code is measured by a floor of the largest span (POD-Galerkin's too);
+    # a plain SIREN's codes are each their own
+    assert model.code_span_floor == pod.code_span_floor == CODE_SPAN_FLOOR > 0
+    plain = LagrangianNeuralField(scene, latent_dim=2, width=16, hyper_width=8, w0=3.0)
+    assert plain.code_span_floor == 0.0
     # and the linear part's pulled-back mass is a multiple of the identity (modes of equal L² norm, orthogonal)
     modes = model.field.linear.modes.flatten(0, 1)
     gram = modes.T @ modes

@@ -96,6 +96,9 @@ class LinearEmbedding(nn.Module):
     :class:`lnf.siren.ModulatedSiren`; J = Φ(X), H = 0. With a quadratic part `quad` (n_basis, A, d, d), symmetric in
     its last two axes (zero unless set), φ gains Ψ(X)[q̃, q̃]: J = Φ + 2Ψ q̃, H = 2Ψ."""
 
+    #: its modes have equal L² norms: a unit of any code is the same size of field (ReducedModel.code_span_floor)
+    commensurate_codes = True
+
     def __init__(self, bounds: list[list[float]], latent_dim: int, out_dim: int, degree: int) -> None:
         super().__init__()
         self.basis = LegendreBasis(bounds, degree)
