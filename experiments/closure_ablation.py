@@ -81,8 +81,9 @@ def summary(rows: list[dict[str, Any]], command: str) -> str:
         for name in ("plain", "closed"):
             m = row[name]
             cells = [f"{m[k]:.4g}" if k in m else "–" for k, _ in KEYS]
-            extra = [f"{row['fit']['closure_regularizer']:.0e}", f"{row['fit_seconds']:.0f}"] if name == "closed" \
-                else ["", ""]
+            floor = row["fit"].get("closure_span_floor", 0.0)  # spans floored (lnf.closure.CODE_SPAN_FLOOR), or not
+            extra = [f"{row['fit']['closure_regularizer']:.0e}" + (f", spans ≥ {floor:g} of the largest" if floor else ""),
+                     f"{row['fit_seconds']:.0f}"] if name == "closed" else ["", ""]
             label = "none" if name == "plain" else f"degree {row['degree']}"
             lines.append(f"| `{row['checkpoint']}` | {row['latent_dim']} | {label} | " + " | ".join(cells + extra) + " |")
     when = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
