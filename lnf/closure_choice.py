@@ -17,7 +17,7 @@ import torch
 from scipy.optimize import least_squares
 
 from lnf.baselines.latent_mlp import latent_trajectories
-from lnf.closure import CLOSURE_MAX_TERMS, ClosedDynamics, equation_residual
+from lnf.closure import CLOSURE_MAX_TERMS, ClosedDynamics, equation_residual, floored_spans
 from lnf.evaluation_pipeline import EvaluationData, EvaluationSpec, evaluate_model
 
 log = logging.getLogger("lnf.closure")
@@ -94,7 +94,11 @@ def fit_closure(model: Any, datamodule: Any, spec: Any) -> dict[str, float]:
     start_from: tuple = (math.inf, 0.0, 0.0, 0.0, None)  # the best residual fit, chosen or not
     chosen: tuple = (*best, 0.0, None)  # the best candidate; coefficients None: the pure pullback
     shot = False
-    for floor in sorted({0.0, float(getattr(model, "code_span_floor", 0.0))}):
+    flat = codes.reshape(-1, codes.shape[-1])
+    spans = (flat - flat.mean(0)).abs().amax(0)
+    floor = float(getattr(model, "code_span_floor", 0.0))
+    floors = (0.0, floor) if floor > 0 and bool((floored_spans(spans, floor) > spans).any()) else (0.0,)  # where it raises one
+    for floor in floors:
         for lam in CLOSURE_REGULARIZERS:
             misfit = closure.fit(codes, residual, lam, floor)
             err = val_error()

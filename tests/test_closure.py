@@ -555,7 +555,10 @@ def test_where_codes_share_one_unit_a_closure_on_floored_spans_is_a_candidate_ch
     residual = torch.randn(40, 2, dtype=torch.float64)
     closure = PotentialClosure(2, 2).double()
 
+    calls = []
+
     def validation(model, data, spec):  # the floored fits validate better, or worse, than the pure pullback
+        calls.append(1)
         floored = bool(closure.active and closure.scale[1] > 0.01)
         err = 0.1 if not closure.active else (0.05 if floored == floored_wins else 0.2)
         return SimpleNamespace(metrics={"field_rel_l2/in_horizon/median": err})
@@ -586,3 +589,9 @@ def test_where_codes_share_one_unit_a_closure_on_floored_spans_is_a_candidate_ch
     spans = (codes[0] - codes[0].mean(0)).abs().amax(0)
     expected = floored_spans(spans, CODE_SPAN_FLOOR) if floored_wins else spans
     torch.testing.assert_close(closure.scale, expected)
+    assert len(calls) == 1 + 2 * len(closure_choice.CLOSURE_REGULARIZERS)  # the pure pullback, then 2 scales × 3 λ
+    # codes of comparable spans: the floor changes nothing, so each λ is fitted once
+    calls.clear()
+    codes[..., 1] *= 100.0
+    closure_choice.fit_closure(model, datamodule, Spec())
+    assert len(calls) == 1 + len(closure_choice.CLOSURE_REGULARIZERS)
