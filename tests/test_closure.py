@@ -1,4 +1,5 @@
 """The potential closure (lnf/closure.py): a polynomial ΔṼ fitted to the residual of the pulled-back equations."""
+import dataclasses
 import json
 import math
 import os
@@ -487,10 +488,21 @@ def test_a_shooting_stage_stops_when_its_gap_stalls(monkeypatch, caplog):
             assert "stalled" not in caplog.text
 
 
+@dataclasses.dataclass
+class _FitSpec:
+    """What fit_closure reads of an EvaluationSpec, for its tests with stand-in models and data."""
+    split: str = "test"
+    label: str = ""
+    long_steps: int = 0
+    figures: int = 0
+    keep_fields: int = 0
+    progress: bool = False
+    closure_shooting_iterations: int = 0
+
+
 def test_the_closure_fit_reads_a_forced_scenes_loads_where_the_file_stores_none(tmp_path, monkeypatch):
     """A generated actuated cantilever keeps its loads (A, f) in the states, not in a `controls` dataset: the closure's
     residual and shooting must act them, as the evaluation does (they once ran without the actuation)."""
-    import dataclasses
     import numpy as np
 
     from lnf import closure_choice
@@ -517,15 +529,6 @@ def test_the_closure_fit_reads_a_forced_scenes_loads_where_the_file_stores_none(
         seen["controls"] = controls
         raise Stop
 
-    @dataclasses.dataclass
-    class Spec:
-        split: str = "test"
-        label: str = ""
-        long_steps: int = 0
-        figures: int = 0
-        keep_fields: int = 0
-        progress: bool = False
-
     codes = torch.zeros(3, 4, 1)
     monkeypatch.setattr(closure_choice, "evaluate_model",
                         lambda model, data, spec: SimpleNamespace(metrics={"field_rel_l2/in_horizon/median": 0.1}))
@@ -536,7 +539,7 @@ def test_the_closure_fit_reads_a_forced_scenes_loads_where_the_file_stores_none(
     datamodule = SimpleNamespace(split={"train": train, "val": val}.__getitem__, dt=0.05,
                                  observations=lambda split: train.observed(4, velocities=True))
     with pytest.raises(Stop):
-        closure_choice.fit_closure(model, datamodule, Spec())
+        closure_choice.fit_closure(model, datamodule, _FitSpec())
     torch.testing.assert_close(seen["controls"], torch.as_tensor(loads))
 
 
@@ -545,7 +548,6 @@ def test_where_codes_share_one_unit_a_closure_on_floored_spans_is_a_candidate_ch
                                                                                                  floored_wins):
     """A model whose codes share one unit (POD coordinates) gets each residual fit twice, on each code's own span and
     on spans floored at its code_span_floor; the validation picks one, and the closure keeps that one's scale."""
-    import dataclasses
 
     from lnf import closure_choice
 
@@ -563,16 +565,6 @@ def test_where_codes_share_one_unit_a_closure_on_floored_spans_is_a_candidate_ch
         err = 0.1 if not closure.active else (0.05 if floored == floored_wins else 0.2)
         return SimpleNamespace(metrics={"field_rel_l2/in_horizon/median": err})
 
-    @dataclasses.dataclass
-    class Spec:
-        split: str = "test"
-        label: str = ""
-        long_steps: int = 0
-        figures: int = 0
-        keep_fields: int = 0
-        progress: bool = False
-        closure_shooting_iterations: int = 0
-
     monkeypatch.setattr(closure_choice, "evaluate_model", validation)
     monkeypatch.setattr(closure_choice.EvaluationData, "of_split",
                         lambda *args: SimpleNamespace(within_horizon=lambda: None))
@@ -583,7 +575,7 @@ def test_where_codes_share_one_unit_a_closure_on_floored_spans_is_a_candidate_ch
     train = SimpleNamespace(loads=lambda scene: None, times=[0.0])
     datamodule = SimpleNamespace(split={"train": train, "val": None}.__getitem__, dt=0.05,
                                  observations=lambda split: (torch.zeros(1), torch.zeros(1), torch.zeros(1)))
-    record = closure_choice.fit_closure(model, datamodule, Spec())
+    record = closure_choice.fit_closure(model, datamodule, _FitSpec())
     assert record["closure_val_error"] == 0.05 and closure.active
     assert record["closure_span_floor"] == (CODE_SPAN_FLOOR if floored_wins else 0.0)
     spans = (codes[0] - codes[0].mean(0)).abs().amax(0)
@@ -593,5 +585,5 @@ def test_where_codes_share_one_unit_a_closure_on_floored_spans_is_a_candidate_ch
     # codes of comparable spans: the floor changes nothing, so each λ is fitted once
     calls.clear()
     codes[..., 1] *= 100.0
-    closure_choice.fit_closure(model, datamodule, Spec())
+    closure_choice.fit_closure(model, datamodule, _FitSpec())
     assert len(calls) == 1 + len(closure_choice.CLOSURE_REGULARIZERS)
