@@ -25,7 +25,7 @@ import torch
 from torch import Tensor, nn
 
 from lnf.boundary import ClampedField
-from lnf.closure import PotentialClosure
+from lnf.closure import PotentialClosure, floored_spans
 from lnf.dynamics_kind import dynamics_kind
 from lnf.error_budget import SIREN_COLLAPSE_ADVICE
 from lnf.quadrature import Quadrature, QuadratureRule
@@ -357,7 +357,7 @@ class LagrangianNeuralField(ReducedModel):
             raise ValueError("dynamics=tabulated needs the range of the training codes, which this model does not "
                              "have (a checkpoint written before lnf recorded it, or an untrained model): retrain, "
                              "or call model.track_code_range(codes) with representative codes first")
-        span = (high - low).clamp_min(1e-3)
+        span = floored_spans(high - low, self.code_span_floor).clamp_min(1e-3)  # a barely moving POD code too
         # built from a float64 copy of φ: the table's derivatives would amplify float32 rounding by nodes²
         exact = self.lagrangian_dynamics(quadrature)
         table = TabulatedDynamics(exact, (low - margin * span).tolist(), (high + margin * span).tolist(),

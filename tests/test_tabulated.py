@@ -425,3 +425,32 @@ def test_a_table_that_misses_its_tolerance_says_the_pullback_is_not_smooth(pendu
         TabulatedDynamics(exact, [-2.5], [2.5])  # the default tolerance is met: nothing to say
     assert "not smooth" not in caplog.text
 
+
+
+@pytest.mark.parametrize("pod_subspace", [True, False])
+def test_a_tables_box_gives_a_barely_moving_pod_code_a_floor_of_the_largest_span(monkeypatch, pod_subspace):
+    """POD codes share one unit: a code that barely moves in training gets a margin of CODE_SPAN_FLOOR of the largest
+    span (the soft body's 4th, 0.3 % of its 1st, ran 1.6 to 4.1 half-widths off a box of its own span, into the exact
+    pullback); a SIREN's codes, each in its own unit, keep their own spans."""
+    from lnf import tabulated
+    from lnf.closure import CODE_SPAN_FLOOR
+    from lnf.model import LagrangianNeuralField
+    from lnf.scenes import ElasticCantilever
+
+    class Built(Exception):
+        pass
+
+    def capture(exact, low, high, **kwargs):
+        raise Built(low, high)
+
+    model = LagrangianNeuralField(ElasticCantilever(mesh=(4, 2)), latent_dim=2, width=16, hyper_width=8, w0=3.0,
+                                  pod_subspace=pod_subspace, pod_degree=4)
+    model.track_code_range(torch.tensor([[-2.0, -0.003], [2.0, 0.003]]), reset=True)
+    model.set_tabulation({"margin": 0.25})
+    monkeypatch.setattr(tabulated, "TabulatedDynamics", capture)
+    with pytest.raises(Built) as built:
+        model.dynamics()
+    low, high = built.value.args
+    assert low[0] == pytest.approx(-3.0) and high[0] == pytest.approx(3.0)  # 0.25 of the span 4 on each side
+    pad = 0.25 * (CODE_SPAN_FLOOR * 4.0 if pod_subspace else 0.006)
+    assert low[1] == pytest.approx(-0.003 - pad) and high[1] == pytest.approx(0.003 + pad)
