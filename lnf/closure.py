@@ -55,7 +55,8 @@ def capped_degree(latent_dim: int, degree: int, max_terms: Optional[int]) -> int
 
 #: the least span a code is given, as a fraction of the largest code's (:func:`floored_spans`), where the codes share one
 #: unit (POD coordinates: :attr:`lnf.reduced_model.ReducedModel.code_span_floor`): a closure fitted so is a candidate
-#: beside one on each code's own span (lnf/closure_choice.py), and the shooting's guard measures by these spans. The
+#: beside one on each code's own span (lnf/closure_choice.py); the shooting's guard and a table's box (lnf/model.py)
+#: measure by these spans. The
 #: soft body's 3rd and 4th POD codes span 0.3 % of its 1st's (the cantilever's 1.0 and 0.8 %): on its own span a
 #: quadratic term in such a code is a stiffness θ/span²; and at d = 4 the soft body's pure pullback carries its 4th
 #: code up to 4.1 half-widths off its range, a small change of the field, where a guard of its own span ended the trials

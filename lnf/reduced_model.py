@@ -176,8 +176,8 @@ class ReducedModel(nn.Module):
 
     @property
     def code_span_floor(self) -> float:
-        """The least span a code is measured by, as a fraction of the largest code's (a potential closure's scale and
-        its shooting guard): :data:`lnf.closure.CODE_SPAN_FLOOR` where φ's codes share one unit (its
+        """The least span a code is measured by, as a fraction of the largest code's (a potential closure's scale, its
+        shooting guard, a table's box): :data:`lnf.closure.CODE_SPAN_FLOOR` where φ's codes share one unit (its
         ``commensurate_codes``: POD modes of equal L² norm, so a code's size is the field's), 0 where each code has its
         own (a SIREN's)."""
         return CODE_SPAN_FLOOR if getattr(self.field, "commensurate_codes", False) else 0.0
