@@ -181,6 +181,13 @@ SPECS: dict[str, Spec] = {
         "study", f"python -m experiments.closure_ablation --ckpt <the d = {d} checkpoint of model_size-soft_body-d34> "
         f"--degree 4 --threads 1 --out outputs/studies/closure_ablation-soft_body-d{d}",
         raw=f"outputs/studies/closure_ablation-soft_body-d{d}", table=0, csv="closure.json") for d in (3, 4)},
+    # a checkpoint trained here (python -m lnf.train +experiment=<scene> <the reduced settings> model.latent_dim=<d>
+    # model.closure_degree=0), then the closure ablation with the codes' spans floored (CODE_SPAN_FLOOR)
+    **{f"closure_ablation-{s}-d{d}-floor": Spec(
+        "study", f"python -m experiments.closure_ablation --ckpt <a {s} checkpoint at d = {d}, reduced settings> "
+        f"--degree 4 --threads 1 --out outputs/studies/closure_ablation-{s}-d{d}-floor",
+        raw=f"outputs/studies/closure_ablation-{s}-d{d}-floor", table=0, csv="closure.json")
+       for s, d in (("soft_body", 3), ("soft_body", 4), ("elastic", 3))},
     **{f"seeds-{s}": _study("seeds", s) for s in SCENES},
     "cost_scaling-pendulum": _study("cost_scaling", "pendulum"),
     **{f"roofline-{s}": _study("roofline", s) for s in SCENES},

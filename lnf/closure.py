@@ -53,13 +53,13 @@ def capped_degree(latent_dim: int, degree: int, max_terms: Optional[int]) -> int
     return p
 
 
-#: the least span a code is given, as a fraction of the largest code's (:func:`floored_spans`), where the codes share one
-#: unit (POD coordinates: :attr:`lnf.reduced_model.ReducedModel.code_span_floor`): a closure fitted so is a candidate
-#: beside one on each code's own span (lnf/closure_choice.py); the shooting's guard and a table's box (lnf/model.py)
-#: measure by these spans. The
-#: soft body's 3rd and 4th POD codes span 0.3 % of its 1st's (the cantilever's 1.0 and 0.8 %): on its own span a
-#: quadratic term in such a code is a stiffness θ/span²; and at d = 4 the soft body's pure pullback carries its 4th
-#: code up to 4.1 half-widths off its range, a small change of the field, where a guard of its own span ended the trials
+#: the least span a code is given, as a fraction of the largest code's (:func:`floored_spans`), where the codes share
+#: one unit (POD coordinates: :attr:`lnf.reduced_model.ReducedModel.code_span_floor`): a closure fitted so is a
+#: candidate beside one on each code's own span (lnf/closure_choice.py); the shooting's guard and a table's box
+#: (lnf/model.py) measure by these spans. The soft body's 3rd and 4th POD codes span 0.3 % of its 1st's (the
+#: cantilever's 2nd and 3rd 7 and 1 %): on its own span a quadratic term in such a code is a stiffness θ/span²; at
+#: d = 4 the soft body's rollouts swing its 4th code a few of its own widths, a small change of the field, past a
+#: table's box of its own span, where the shooting's trials read the table's edge and ran 1 090 half-widths away
 CODE_SPAN_FLOOR = 0.1
 
 
