@@ -97,7 +97,8 @@ def fit_closure(model: Any, datamodule: Any, spec: Any) -> dict[str, float]:
     flat = codes.reshape(-1, codes.shape[-1])
     spans = (flat - flat.mean(0)).abs().amax(0)
     floor = float(getattr(model, "code_span_floor", 0.0))
-    floors = (0.0, floor) if floor > 0 and bool((floored_spans(spans, floor) > spans).any()) else (0.0,)  # where it raises one
+    # the floored scale only where it raises some code's span (never at d = 1: the two fits would be one)
+    floors = (0.0, floor) if floor > 0 and bool((floored_spans(spans, floor) > spans).any()) else (0.0,)
     for floor in floors:
         for lam in CLOSURE_REGULARIZERS:
             misfit = closure.fit(codes, residual, lam, floor)
