@@ -187,7 +187,7 @@ SPECS: dict[str, Spec] = {
         "study", f"python -m experiments.closure_ablation --ckpt <a {s} checkpoint at d = {d}, reduced settings> "
         f"--degree 4 --threads 1 --out outputs/studies/closure_ablation-{s}-d{d}-floor",
         raw=f"outputs/studies/closure_ablation-{s}-d{d}-floor", table=0, csv="closure.json")
-       for s, d in (("soft_body", 3), ("soft_body", 4), ("elastic", 3), ("elastic_actuated", 3))},
+       for s, d in (("soft_body", 3), ("soft_body", 4), ("elastic", 3), ("elastic_actuated", 3), ("elastic", 4))},
     **{f"seeds-{s}": _study("seeds", s) for s in SCENES},
     "cost_scaling-pendulum": _study("cost_scaling", "pendulum"),
     **{f"roofline-{s}": _study("roofline", s) for s in SCENES},
